@@ -1,0 +1,1 @@
+"""File formats and conventions shared by every stage (images, cameras, meshes, atomic output)."""

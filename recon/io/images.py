@@ -1,0 +1,159 @@
+"""Image files and colour encodings.
+
+Arrays are float32 ``(H, W, C)`` with the first row at the top of the image. Colour spaces
+change only here, at file boundaries: names say which one an array is in
+(``rgb_linear``, ``rgb_srgb``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from recon.io.atomic import atomic_path
+
+RAW_EXTENSIONS = (".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".rw2", ".orf", ".pef", ".srw")
+LDR_EXTENSIONS = (".jpg", ".jpeg", ".png")
+HDR_EXTENSIONS = (".exr",)
+IMAGE_EXTENSIONS = RAW_EXTENSIONS + LDR_EXTENSIONS + HDR_EXTENSIONS
+
+
+class ImageError(ValueError):
+    """An image file that cannot be used; the message names the file and the fix."""
+
+
+# ---- sRGB transfer function (IEC 61966-2-1) ----
+def srgb_to_linear(rgb_srgb: np.ndarray) -> np.ndarray:
+    """Decode sRGB-encoded values in [0, 1] to linear."""
+    c = np.asarray(rgb_srgb, dtype=np.float32)
+    return np.where(c <= 0.04045, c / 12.92, ((np.maximum(c, 0.04045) + 0.055) / 1.055) ** 2.4).astype(
+        np.float32
+    )
+
+
+def linear_to_srgb(rgb_linear: np.ndarray) -> np.ndarray:
+    """Encode linear values to sRGB, clipped to [0, 1]."""
+    c = np.clip(np.asarray(rgb_linear, dtype=np.float32), 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(np.maximum(c, 0.0031308), 1 / 2.4) - 0.055).astype(
+        np.float32
+    )
+
+
+# ---- EXR ----
+def _as_hwc(image: np.ndarray, path) -> np.ndarray:
+    a = np.asarray(image)
+    if a.ndim == 2:
+        a = a[:, :, None]
+    if a.ndim != 3 or a.shape[2] not in (1, 3, 4):
+        raise ValueError(f"{path}: expected an (H, W), (H, W, 1), (H, W, 3) or (H, W, 4) image, got {a.shape}")
+    return a
+
+
+def write_exr(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Write a float32 EXR (1 channel 'Y', 3 channels RGB, 4 RGBA), atomically."""
+    import OpenEXR
+
+    a = np.ascontiguousarray(_as_hwc(image, path).astype(np.float32))
+    if a.shape[2] == 1:
+        channels = {"Y": np.ascontiguousarray(a[:, :, 0])}
+    elif a.shape[2] == 3:
+        channels = {"RGB": a}
+    else:
+        channels = {"RGBA": a}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path) as tmp:
+        with OpenEXR.File(header, channels) as f:
+            f.write(str(tmp))
+
+
+def read_exr(path: str | os.PathLike) -> np.ndarray:
+    """Read an EXR as float32 ``(H, W, C)``: C = 1 (Y or a single channel), 3 (RGB) or 4 (RGBA)."""
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"{path}: file not found")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            ch = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
+    except Exception as e:  # OpenEXR raises plain exceptions for corrupt files
+        raise ImageError(f"{path}: not a readable OpenEXR file ({e}); re-export it as .exr") from e
+    names = list(ch)
+    if all(c in ch for c in "RGB"):
+        order = ["R", "G", "B"] + (["A"] if "A" in ch else [])
+    elif "Y" in ch:
+        order = ["Y"]
+    elif len(names) == 1:
+        order = names
+    else:
+        raise ImageError(f"{path}: unsupported EXR channels {names}; expected R,G,B[,A] or Y")
+    return np.stack([ch[c].astype(np.float32) for c in order], axis=-1)
+
+
+# ---- 8/16-bit PNG and JPEG ----
+def read_ldr(path: str | os.PathLike) -> tuple[np.ndarray, int]:
+    """Read a PNG/JPEG as float32 ``(H, W, C)`` in [0, 1] (still encoded) and its bit depth.
+
+    EXIF orientation is ignored: pixels are used as stored, like every other view.
+    """
+    import cv2
+
+    path = Path(path)
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+    if img is None:
+        raise ImageError(f"{path}: cannot decode the image (truncated or not a {path.suffix} file)")
+    if img.ndim == 2:
+        img = img[:, :, None]
+    elif img.shape[2] == 3:
+        img = img[:, :, ::-1]
+    elif img.shape[2] == 4:
+        img = img[:, :, [2, 1, 0, 3]]
+    if img.dtype == np.uint8:
+        bits = 8
+    elif img.dtype == np.uint16:
+        bits = 16
+    else:
+        raise ImageError(f"{path}: unsupported sample type {img.dtype}; use 8- or 16-bit PNG/JPEG")
+    return (img.astype(np.float32) / float(2**bits - 1)), bits
+
+
+def write_png(path: str | os.PathLike, image: np.ndarray, bits: int = 8) -> None:
+    """Write values in [0, 1] (already encoded) as an 8- or 16-bit PNG, atomically."""
+    import cv2
+
+    a = _as_hwc(image, path)
+    scale = 2**bits - 1
+    q = np.clip(np.rint(np.nan_to_num(a) * scale), 0, scale).astype(np.uint8 if bits == 8 else np.uint16)
+    if q.shape[2] == 3:
+        q = q[:, :, ::-1]
+    elif q.shape[2] == 4:
+        q = q[:, :, [2, 1, 0, 3]]
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), q):
+            raise OSError(f"{path}: could not write PNG")
+
+
+def write_jpg(path: str | os.PathLike, rgb_srgb: np.ndarray, quality: int = 92) -> None:
+    """Write an sRGB-encoded image in [0, 1] as JPEG, atomically."""
+    import cv2
+
+    a = _as_hwc(rgb_srgb, path)
+    q = np.clip(np.rint(np.nan_to_num(a) * 255), 0, 255).astype(np.uint8)
+    if q.shape[2] == 3:
+        q = q[:, :, ::-1]
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), q, [cv2.IMWRITE_JPEG_QUALITY, quality]):
+            raise OSError(f"{path}: could not write JPEG")
+
+
+def read_mask(path: str | os.PathLike) -> np.ndarray:
+    """Read a mask PNG: bool ``(H, W)``, nonzero = True."""
+    img, _ = read_ldr(path)
+    return img[:, :, 0] > 0
+
+
+def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:
+    """Write a bool ``(H, W)`` mask as an 8-bit PNG (0 or 255)."""
+    write_png(path, np.asarray(mask, dtype=np.float32))

@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# Idempotent set-up on a fresh Debian machine (Python 3.11, root):
+#   system libraries (libLLVM >= 17 for drjit's CPU backend, libusb for open3d),
+#   a virtual environment at .venv with the pinned dependencies and `recon` installed.
+# Re-running is fast: each part is skipped when its inputs did not change.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+root=$(pwd)
+
+log() { printf '[setup] %s\n' "$*" >&2; }
+
+# ---- System libraries ----
+need_pkgs=()
+ls /usr/lib/x86_64-linux-gnu/libLLVM-19.so* >/dev/null 2>&1 || ls /usr/lib/*/libLLVM.so.19* >/dev/null 2>&1 || need_pkgs+=(libllvm19)
+ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || need_pkgs+=(libusb-1.0-0)
+ldconfig -p 2>/dev/null | grep -q 'libgomp.so.1' || need_pkgs+=(libgomp1)
+ldconfig -p 2>/dev/null | grep -q 'libGL.so.1' || need_pkgs+=(libgl1)
+if [ ${#need_pkgs[@]} -gt 0 ]; then
+  if [ "$(id -u)" -ne 0 ]; then
+    log "missing system packages: ${need_pkgs[*]}; run as root or: sudo apt-get install -y ${need_pkgs[*]}"
+    exit 1
+  fi
+  log "installing system packages: ${need_pkgs[*]}"
+  export DEBIAN_FRONTEND=noninteractive
+  apt-get update -qq
+  apt-get install -y -qq --no-install-recommends "${need_pkgs[@]}" >/dev/null
+fi
+
+# ---- Python environment ----
+py=${PYTHON:-python3.11}
+command -v "$py" >/dev/null 2>&1 || py=python3
+stamp=.venv/.setup-stamp
+want=$(cat requirements.txt requirements-dev.txt pyproject.toml | sha256sum | cut -d' ' -f1)
+if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && [ -x .venv/bin/python ]; then
+  exit 0
+fi
+if [ ! -x .venv/bin/python ]; then
+  log "creating .venv with $($py --version)"
+  "$py" -m venv .venv
+fi
+log "installing pinned dependencies into .venv (first run: several minutes)"
+.venv/bin/python -m pip install -q --upgrade pip wheel >/dev/null
+# torch first and alone, so that nothing can pull the CUDA build.
+.venv/bin/python -m pip install -q "torch==2.13.0"
+.venv/bin/python -m pip install -q -r requirements-dev.txt
+.venv/bin/python -m pip install -q --no-deps -e .
+# Check that drjit finds a usable libLLVM (recon picks libLLVM >= 17 itself).
+.venv/bin/python -c "import recon.mi as m; m.load_variant(); print('[setup] mitsuba variant', m.variant())" >&2
+echo "$want" > "$stamp"
+log "done"
