@@ -1,0 +1,151 @@
+"""Settings: presets, per-capture overrides and frozen settings dataclasses.
+
+A stage's settings are the ``<stage>:`` section of ``config/presets/<preset>.yaml``, updated
+by the same section of the capture's ``capture.yaml``. The capture may also pick its own
+``preset`` and ``light_intensity``. Every stage turns the merged dict into its frozen settings
+dataclass with :func:`build_settings`, which rejects unknown keys with a message naming the
+file they came from.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import os
+import typing
+from pathlib import Path
+
+import yaml
+
+STAGES = ("linearize", "masks", "poses", "init_mesh", "uv", "optimize", "export", "report")
+PRESETS = ("draft", "balanced", "accurate")
+CAPTURE_KEYS = ("preset", "light_intensity") + STAGES
+DEFAULT_PRESETS_DIR = Path(__file__).resolve().parents[1] / "config" / "presets"
+
+
+class ConfigError(ValueError):
+    """A setting that cannot be used; the message names the file and the key."""
+
+
+def _read_yaml(path: Path) -> dict:
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML ({e})") from e
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of keys to values at the top level")
+    return data
+
+
+def read_capture_yaml(capture_dir: str | os.PathLike) -> dict:
+    """The capture's ``capture.yaml`` (empty when absent), with its keys checked."""
+    path = Path(capture_dir) / "capture.yaml"
+    if not path.is_file():
+        return {}
+    data = _read_yaml(path)
+    unknown = sorted(set(data) - set(CAPTURE_KEYS))
+    if unknown:
+        raise ConfigError(
+            f"{path}: unknown key(s) {unknown}; allowed: {', '.join(CAPTURE_KEYS)}"
+        )
+    if "preset" in data and data["preset"] not in PRESETS:
+        raise ConfigError(f"{path}: preset must be one of {PRESETS}, got {data['preset']!r}")
+    for stage in STAGES:
+        if stage in data and not isinstance(data[stage], dict):
+            raise ConfigError(f"{path}: '{stage}' must be a mapping of setting names to values")
+    return data
+
+
+def capture_preset(capture_dir: str | os.PathLike, default: str) -> str:
+    """The preset a capture runs with: its capture.yaml's ``preset``, else ``default``."""
+    return read_capture_yaml(capture_dir).get("preset", default)
+
+
+def load_preset(preset: str, presets_dir: str | os.PathLike | None = None) -> dict:
+    presets_dir = Path(presets_dir or DEFAULT_PRESETS_DIR)
+    path = presets_dir / f"{preset}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"preset '{preset}' not found: {path} does not exist (presets: {PRESETS})")
+    data = _read_yaml(path)
+    unknown = sorted(set(data) - set(STAGES))
+    if unknown:
+        raise ConfigError(f"{path}: unknown section(s) {unknown}; stages are {', '.join(STAGES)}")
+    return data
+
+
+def stage_settings(
+    stage: str,
+    preset: str,
+    capture_dir: str | os.PathLike | None = None,
+    presets_dir: str | os.PathLike | None = None,
+) -> dict:
+    """Merged settings dict of ``stage``: preset section updated by capture.yaml's section.
+
+    The capture's own ``preset`` key, when present, replaces ``preset``. The result carries
+    ``_sources`` (the files it came from) for error messages; :func:`build_settings` drops it.
+    """
+    if stage not in STAGES:
+        raise ConfigError(f"unknown stage '{stage}'; stages are {', '.join(STAGES)}")
+    cap = read_capture_yaml(capture_dir) if capture_dir is not None else {}
+    preset = cap.get("preset", preset)
+    merged = copy.deepcopy(load_preset(preset, presets_dir).get(stage) or {})
+    sources = [str(Path(presets_dir or DEFAULT_PRESETS_DIR) / f"{preset}.yaml")]
+    if stage in cap:
+        merged.update(cap[stage])
+        sources.append(str(Path(capture_dir) / "capture.yaml"))
+    if stage == "poses" and "light_intensity" in cap:
+        merged.setdefault("light_intensity", cap["light_intensity"])
+    merged["_sources"] = sources
+    merged["_preset"] = preset
+    return merged
+
+
+T = typing.TypeVar("T")
+
+
+def build_settings(cls: type[T], values: dict | None, source: str = "settings") -> T:
+    """Build the frozen dataclass ``cls`` from ``values``, rejecting unknown keys.
+
+    Lists become tuples where the field is a tuple; ``_``-prefixed bookkeeping keys are ignored.
+    """
+    values = dict(values or {})
+    sources = values.pop("_sources", None)
+    values.pop("_preset", None)
+    where = " / ".join(sources) if sources else source
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise ConfigError(
+            f"{where}: unknown {cls.__name__} key(s) {unknown}; valid keys: {', '.join(sorted(fields))}"
+        )
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for name, value in values.items():
+        hint = hints.get(name)
+        origin = typing.get_origin(hint)
+        if (hint is tuple or origin is tuple) and isinstance(value, list):
+            value = tuple(tuple(v) if isinstance(v, list) else v for v in value)
+        elif hint is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        kwargs[name] = value
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"{where}: invalid {cls.__name__} ({e})") from e
+
+
+def discover_captures(captures_root: str | os.PathLike) -> list[str]:
+    """Names of the capture folders under ``captures_root`` (those with an ``images/`` folder)."""
+    root = Path(captures_root)
+    if not root.is_dir():
+        raise ConfigError(
+            f"captures folder '{root}' does not exist; set `captures` in config/config.yaml "
+            "or pass --config captures=DIR"
+        )
+    names = sorted(p.name for p in root.iterdir() if (p / "images").is_dir())
+    if not names:
+        raise ConfigError(
+            f"no capture folders in '{root}': each capture is a folder with an images/ folder "
+            "(DESIGN section 1)"
+        )
+    return names
