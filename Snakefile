@@ -23,7 +23,8 @@ rule all:
     default_target: True
 
 
-for _stage in ["linearize", "masks", "poses", "init_mesh", "uv", "optimize", "export", "report"]:
+for _stage in STAGES:
     if Path(workflow.basedir, "workflow", "rules", f"{_stage}.smk").exists():
+        INCLUDED_STAGES.append(_stage)
 
         include: f"workflow/rules/{_stage}.smk"

@@ -9,6 +9,8 @@ CAPTURES_ROOT = config["captures"]
 PRESET = config["preset"]
 PRESETS_DIR = str(Path(workflow.basedir) / "config" / "presets")
 CAPTURES = rc.discover_captures(CAPTURES_ROOT)
+STAGES = list(rc.STAGES)
+INCLUDED_STAGES = []  # filled by the Snakefile as it includes workflow/rules/<stage>.smk
 
 
 wildcard_constraints:
@@ -73,7 +75,7 @@ def get_all_targets(wildcards):
     targets = []
     for capture in CAPTURES:
         for stage, path in finals.items():
-            if hasattr(rules, stage):
+            if stage in INCLUDED_STAGES:
                 targets.append(f"{RESULTS}/{capture}/{path}")
                 break
     return targets

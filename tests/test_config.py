@@ -1,0 +1,85 @@
+import dataclasses
+import subprocess
+import sys
+
+import pytest
+
+from recon import config as rc
+
+
+@dataclasses.dataclass(frozen=True)
+class _Settings:
+    size: int = 4
+    scale: float = 1.0
+    levels: tuple = (1, 2)
+
+
+def test_build_settings_coerces_and_rejects_unknown(tmp_path):
+    s = rc.build_settings(_Settings, {"size": 8, "scale": 2, "levels": [3, 4]})
+    assert s == _Settings(8, 2.0, (3, 4))
+    with pytest.raises(rc.ConfigError, match=r"unknown _Settings key\(s\) \['sise'\]"):
+        rc.build_settings(_Settings, {"sise": 8})
+
+
+def test_capture_yaml_overrides_preset(tmp_path):
+    presets = tmp_path / "presets"
+    presets.mkdir()
+    (presets / "draft.yaml").write_text("optimize: {iters: 10, spp: 2}\n")
+    (presets / "accurate.yaml").write_text("optimize: {iters: 1000, spp: 16}\n")
+    cap = tmp_path / "cap"
+    cap.mkdir()
+    assert rc.stage_settings("optimize", "draft", cap, presets)["iters"] == 10
+    (cap / "capture.yaml").write_text("preset: accurate\noptimize: {spp: 64}\nlight_intensity: 3.0\n")
+    s = rc.stage_settings("optimize", "draft", cap, presets)
+    assert (s["iters"], s["spp"], s["_preset"]) == (1000, 64, "accurate")
+    assert rc.stage_settings("poses", "draft", cap, presets)["light_intensity"] == 3.0
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("bogus: 1\n", r"unknown key\(s\) \['bogus'\]"),
+        ("preset: fast\n", "preset must be one of"),
+        ("optimize: 3\n", "'optimize' must be a mapping"),
+        ("optimize: [1\n", "not valid YAML"),
+    ],
+)
+def test_bad_capture_yaml_names_the_file(tmp_path, text, match):
+    (tmp_path / "capture.yaml").write_text(text)
+    with pytest.raises(rc.ConfigError, match=match) as e:
+        rc.read_capture_yaml(tmp_path)
+    assert "capture.yaml" in str(e.value)
+
+
+def test_repository_presets_are_valid():
+    for preset in rc.PRESETS:
+        data = rc.load_preset(preset)
+        assert set(data) <= set(rc.STAGES)
+
+
+def test_discover_captures(tmp_path):
+    with pytest.raises(rc.ConfigError, match="does not exist"):
+        rc.discover_captures(tmp_path / "nope")
+    with pytest.raises(rc.ConfigError, match="no capture folders"):
+        rc.discover_captures(tmp_path)
+    (tmp_path / "b" / "images").mkdir(parents=True)
+    (tmp_path / "a" / "images").mkdir(parents=True)
+    (tmp_path / "notes").mkdir()
+    assert rc.discover_captures(tmp_path) == ["a", "b"]
+
+
+def _snakemake(repo_root, *args):
+    return subprocess.run(
+        [sys.executable, "-m", "snakemake", "-n", "--cores", "1", *args],
+        cwd=repo_root, capture_output=True, text=True, timeout=300,
+    )
+
+
+def test_snakemake_rejects_wrong_config_key_and_value(repo_root, tmp_path):
+    (tmp_path / "c" / "images").mkdir(parents=True)
+    r = _snakemake(repo_root, "--config", f"captures={tmp_path}", f"results={tmp_path}/r", "presett=draft")
+    assert r.returncode != 0
+    assert "presett" in (r.stdout + r.stderr)
+    r = _snakemake(repo_root, "--config", f"captures={tmp_path}", f"results={tmp_path}/r", "preset=fastest")
+    assert r.returncode != 0
+    assert "fastest" in (r.stdout + r.stderr)
