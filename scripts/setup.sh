@@ -15,6 +15,8 @@ ls /usr/lib/x86_64-linux-gnu/libLLVM-19.so* >/dev/null 2>&1 || ls /usr/lib/*/lib
 ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || need_pkgs+=(libusb-1.0-0)
 ldconfig -p 2>/dev/null | grep -q 'libgomp.so.1' || need_pkgs+=(libgomp1)
 ldconfig -p 2>/dev/null | grep -q 'libGL.so.1' || need_pkgs+=(libgl1)
+command -v node >/dev/null 2>&1 || need_pkgs+=(nodejs)
+command -v npm >/dev/null 2>&1 || need_pkgs+=(npm)
 if [ ${#need_pkgs[@]} -gt 0 ]; then
   if [ "$(id -u)" -ne 0 ]; then
     log "missing system packages: ${need_pkgs[*]}; run as root or: sudo apt-get install -y ${need_pkgs[*]}"
@@ -24,6 +26,17 @@ if [ ${#need_pkgs[@]} -gt 0 ]; then
   export DEBIAN_FRONTEND=noninteractive
   apt-get update -qq
   apt-get install -y -qq --no-install-recommends "${need_pkgs[@]}" >/dev/null
+fi
+
+# ---- Node tools (the Khronos glTF validator, used by tests and the report) ----
+if [ -f tools/gltf-validator/package-lock.json ]; then
+  lock_sum=$(sha256sum tools/gltf-validator/package-lock.json | cut -d' ' -f1)
+  if [ ! -f tools/gltf-validator/node_modules/.recon-stamp ] || \
+     [ "$(cat tools/gltf-validator/node_modules/.recon-stamp)" != "$lock_sum" ]; then
+    log "installing the glTF validator (npm ci)"
+    npm ci --silent --no-audit --no-fund --prefix tools/gltf-validator >/dev/null
+    echo "$lock_sum" > tools/gltf-validator/node_modules/.recon-stamp
+  fi
 fi
 
 # ---- Python environment ----
