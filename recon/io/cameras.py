@@ -218,10 +218,11 @@ def mitsuba_sensor_dict(cam: Camera, spp: int = 16, sample_border: bool = False,
         "type": "perspective",
         "fov_axis": "x",
         "fov": fov_x,
-        # Offsets of the principal point from the film center, in film fractions (Mitsuba's
-        # x points left in image space, so the sign of x flips; y points down in both).
-        "principal_point_offset_x": float((K[0, 2] - cam.width / 2) / cam.width),
-        "principal_point_offset_y": float((K[1, 2] - cam.height / 2) / cam.height),
+        # Offsets of the principal point from the film center, in film fractions. Mitsuba
+        # shifts the film window by MINUS the offset, so both signs are (center - c)/size;
+        # verified by tests/render/test_mitsuba_bsdf.py::test_sensor_principal_point.
+        "principal_point_offset_x": float((cam.width / 2 - K[0, 2]) / cam.width),
+        "principal_point_offset_y": float((cam.height / 2 - K[1, 2]) / cam.height),
         "near_clip": 1e-3,
         "to_world": mi.ScalarTransform4f(camera_to_world_mitsuba(cam).tolist()),
         "film": {

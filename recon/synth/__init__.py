@@ -1,0 +1,1 @@
+"""Synthetic captures: procedural objects, baked SVBRDF maps, rendered views, sensor model."""
