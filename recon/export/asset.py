@@ -294,6 +294,16 @@ def write_textures(material: Material, folder) -> dict[str, Path]:
 
 
 # ---- The stage ----
+def _share(folder: Path) -> None:
+    """Give the folder and its files the umask's usual permissions (temporary files and
+    folders are created private, 0600/0700; an asset is meant to be shared)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    folder.chmod(0o777 & ~mask)
+    for p in folder.iterdir():
+        p.chmod(0o666 & ~mask)
+
+
 def export_asset(
     mesh_obj: str | os.PathLike,
     diffuse_exr: str | os.PathLike,
@@ -341,5 +351,6 @@ def export_asset(
         tex = write_textures(material, tmp)
         write_glb(tmp / "asset.glb", mesh, tex, T, extras)
         write_usd(tmp / "asset.usda", tmp / "asset.usdz", mesh, tex, T, extras)
+        _share(tmp)
     names = {"glb": "asset.glb", "usdz": "asset.usdz", "usda": "asset.usda", **TEXTURE_FILES}
     return {k: out_dir / v for k, v in names.items()}

@@ -25,9 +25,10 @@ def icosphere(subdivisions: int = 3) -> tuple[np.ndarray, np.ndarray]:
          [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
     v = [np.asarray(p, float) / np.linalg.norm(p) for p in v]
     for _ in range(subdivisions):
-        cache, f2 = {}, []
+        cache: dict[tuple[int, int], int] = {}
+        f2 = []
 
-        def mid(a, b):
+        def mid(a, b, cache=cache):
             key = (min(a, b), max(a, b))
             if key not in cache:
                 p = v[a] + v[b]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 from export_model import Model, make_cameras, write_model
@@ -51,7 +53,7 @@ def test_appearance_preserved(model, readback, reference_renders):
     DESIGN section 3), matches the optimized model: contract RMSE < 0.01 in sRGB; 8-bit
     textures allow ~1e-3, measured ~3e-4."""
     fmt, asset = readback
-    for k, (cam, ref) in enumerate(zip(model.cameras.frames, reference_renders)):
+    for k, (cam, ref) in enumerate(zip(model.cameras.frames, reference_renders, strict=True)):
         assert (ref.sum(axis=2) > 0).mean() > 0.2, "the object must fill the view"
         img = _render_asset(asset, asset.mesh, cam, model.cameras.light_intensity, seed=k)
         assert np.all(np.isfinite(img))
@@ -189,6 +191,10 @@ def test_outputs(exported):
     assert names == {"asset.glb", "asset.usdz", "asset.usda", "diffuse.png", "specular.png",
                      "metallic_roughness.png"}
     assert all(exported[k].stat().st_size > 0 for k in exported)
+    mask = os.umask(0)
+    os.umask(mask)
+    for p in [exported["glb"].parent, *exported.values()]:  # shareable, not mkstemp's 0600
+        assert p.stat().st_mode & 0o777 == (0o777 if p.is_dir() else 0o666) & ~mask, p
 
 
 def test_failed_export_leaves_the_previous_one(tmp_path, model, monkeypatch):
@@ -281,3 +287,15 @@ def test_cameras_up_with_another_camera_set(tmp_path, fresh):
     out = _export(fresh, tmp_path, cameras_json=fresh.cameras_json)
     R = read_glb(out["glb"]).object_to_world[:3, :3]
     assert np.allclose(R @ [0, -1, 0], [0, 1, 0], atol=1e-6)
+
+
+def test_rgb_specular_map(fresh, tmp_path):
+    """An RGB a_s (DESIGN 2: 'or RGB where the scene needs it') keeps its channels apart."""
+    a_s = np.stack([np.full((6, 5), v, np.float32) for v in (0.03, 0.2, 0.9)], axis=-1)
+    a_s[2, 3] = (0.5, 0.0, 1.0)
+    write_exr(fresh.exr("specular"), a_s)
+    out = _export(fresh, tmp_path, cameras_json=fresh.cameras_json)
+    for fmt, read in READERS.items():
+        got = read(out[fmt]).a_s
+        assert got.shape == (6, 5, 3)
+        assert np.abs(srgb_encode(got) - srgb_encode(a_s)).max() <= HALF_STEP, fmt

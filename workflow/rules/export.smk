@@ -1,0 +1,25 @@
+# Export (DESIGN section 2, issue 6): the optimized model as glTF 2.0 (.glb, with
+# KHR_materials_specular) and USD (.usdz packaging asset.usda and its PNG textures).
+# The whole export/ folder is replaced atomically by recon.export.export_asset, so the log
+# and the benchmark live outside it.
+
+
+rule export:
+    input:
+        mesh=f"{RESULTS}/{{capture}}/optimize/mesh.obj",
+        diffuse=f"{RESULTS}/{{capture}}/optimize/diffuse.exr",
+        specular=f"{RESULTS}/{{capture}}/optimize/specular.exr",
+        roughness=f"{RESULTS}/{{capture}}/optimize/roughness.exr",
+        cameras=f"{RESULTS}/{{capture}}/poses/cameras.json",
+    output:
+        glb=f"{RESULTS}/{{capture}}/export/asset.glb",
+        usdz=f"{RESULTS}/{{capture}}/export/asset.usdz",
+        usda=f"{RESULTS}/{{capture}}/export/asset.usda",
+    log:
+        f"{RESULTS}/{{capture}}/logs/export.log",
+    benchmark:
+        f"{RESULTS}/{{capture}}/benchmarks/export.tsv"
+    params:
+        settings=get_settings("export"),
+    script:
+        "../scripts/export.py"
