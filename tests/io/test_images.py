@@ -1,0 +1,43 @@
+import numpy as np
+import pytest
+
+from recon.io import images as im
+
+
+def test_srgb_round_trip_and_known_values():
+    x = np.linspace(0, 1, 1001, dtype=np.float32)
+    assert np.abs(im.srgb_to_linear(im.linear_to_srgb(x)) - x).max() < 1e-5
+    assert im.linear_to_srgb(np.float32(0.0031308)) == pytest.approx(0.04045, abs=1e-5)
+    assert im.srgb_to_linear(np.float32(0.5)) == pytest.approx(0.21404, abs=1e-4)
+    assert np.all(np.isfinite(im.linear_to_srgb(np.array([-1, np.inf, 2], np.float32))))
+
+
+@pytest.mark.parametrize("shape", [(5, 7), (5, 7, 1), (5, 7, 3), (5, 7, 4)])
+def test_exr_round_trip(tmp_path, shape):
+    a = np.random.default_rng(0).random(shape).astype(np.float32) * 100
+    im.write_exr(tmp_path / "a.exr", a)
+    b = im.read_exr(tmp_path / "a.exr")
+    assert b.shape == (a.shape if a.ndim == 3 else a.shape + (1,))
+    np.testing.assert_array_equal(b.reshape(a.shape), a)
+
+
+def test_bad_files_name_the_file(tmp_path):
+    p = tmp_path / "broken.exr"
+    p.write_bytes(b"not an exr")
+    with pytest.raises(im.ImageError, match="broken.exr"):
+        im.read_exr(p)
+    p = tmp_path / "broken.png"
+    p.write_bytes(b"\x89PNG\r\n")
+    with pytest.raises(im.ImageError, match="broken.png"):
+        im.read_ldr(p)
+
+
+def test_png_16bit_and_mask_round_trip(tmp_path):
+    a = np.random.default_rng(1).random((4, 6, 3)).astype(np.float32)
+    im.write_png(tmp_path / "a.png", a, bits=16)
+    b, bits = im.read_ldr(tmp_path / "a.png")
+    assert bits == 16 and np.abs(a - b).max() <= 0.5 / 65535 + 1e-7
+    m = np.zeros((4, 6), bool)
+    m[1:3, 2:5] = True
+    im.write_mask(tmp_path / "m.png", m)
+    np.testing.assert_array_equal(im.read_mask(tmp_path / "m.png"), m)
