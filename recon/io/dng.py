@@ -91,6 +91,8 @@ def write_dng(
     h, w = cfa.shape
     if h % 2 or w % 2:
         raise ValueError(f"{path}: CFA width and height must be even, got {w} x {h}")
+    if min(h, w) < 22:
+        raise ValueError(f"{path}: LibRaw refuses RAW images smaller than 22 pixels, got {w} x {h}")
     if min(exposure_time, iso, f_number) <= 0:
         raise ValueError(f"{path}: exposure_time, iso, f_number must be > 0")
     if not 1 <= iso <= 65535:

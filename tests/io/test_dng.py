@@ -79,17 +79,19 @@ def test_linearization_table_is_applied_by_rawpy(tmp_path):
 
 def test_long_exposure_and_errors(tmp_path):
     s = SensorModel()
-    cfa = np.full((8, 8), 300, np.uint16)
+    cfa = np.full((24, 24), 300, np.uint16)
     p = write_dng(tmp_path / "long.dng", cfa, s, 30.0, 100, 22.0)
     assert _ratio(_tags(p)["ExposureTime"])[0] == 30.0
     with pytest.raises(ValueError, match="uint16"):
         write_dng(tmp_path / "a.dng", cfa.astype(np.float32), s, 1, 100, 2)
     with pytest.raises(ValueError, match="even"):
-        write_dng(tmp_path / "a.dng", np.zeros((7, 8), np.uint16), s, 1, 100, 2)
+        write_dng(tmp_path / "a.dng", np.zeros((23, 24), np.uint16), s, 1, 100, 2)
     with pytest.raises(ValueError, match="white level"):
-        write_dng(tmp_path / "a.dng", np.full((8, 8), 5000, np.uint16), s, 1, 100, 2)
+        write_dng(tmp_path / "a.dng", np.full((24, 24), 5000, np.uint16), s, 1, 100, 2)
     with pytest.raises(ValueError, match="default_crop"):
-        write_dng(tmp_path / "a.dng", cfa, s, 1, 100, 2, default_crop=(4, 4, 8, 8))
+        write_dng(tmp_path / "a.dng", cfa, s, 1, 100, 2, default_crop=(4, 4, 24, 8))
+    with pytest.raises(ValueError, match="22 pixels"):
+        write_dng(tmp_path / "a.dng", np.zeros((20, 200), np.uint16), s, 1, 100, 2)
     with pytest.raises(ValueError, match="> 0"):
         write_dng(tmp_path / "a.dng", cfa, s, 0, 100, 2)
     assert not (tmp_path / "a.dng").exists()

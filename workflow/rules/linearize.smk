@@ -1,0 +1,20 @@
+# Linearize (DESIGN section 2): every photo of a capture to float32 linear Rec.709 on one
+# exposure scale, with clipped-pixel masks, sRGB previews and per-image metadata.
+# recon.linearize.linearize_capture replaces the whole linear/ folder atomically; linear.json
+# (written last) is the declared output. The log and the benchmark live outside linear/.
+
+
+rule linearize:
+    input:
+        images=get_images,
+    output:
+        meta=f"{RESULTS}/{{capture}}/linear/linear.json",
+    log:
+        f"{RESULTS}/{{capture}}/logs/linearize.log",
+    benchmark:
+        f"{RESULTS}/{{capture}}/benchmarks/linearize.tsv"
+    params:
+        capture_dir=get_capture_dir,
+        settings=get_settings("linearize"),
+    script:
+        "../scripts/linearize.py"
