@@ -1,0 +1,461 @@
+"""The optimize stage: coarse-to-fine analysis by synthesis of shape and SVBRDF (sec. 3.2-3.4).
+
+Per iteration: sample views (deterministically from (seed, stage, iteration)), render them with
+the current mesh and maps, compare after the tone map Phi (eq. 6), add the sec. 3.3 priors,
+backpropagate, take an Adam step, and pass the new vertex positions through the surface guard
+(no new self-intersections, folds or degenerate faces). Between stages: remesh, re-unwrap, bake
+the maps onto the new atlas (:mod:`recon.optimize.remesh`).
+
+Timings are kept per phase, as in the paper's supplement: ``render`` (forward rendering),
+``loss`` (rendering loss and priors), ``backward`` (backpropagation through both),
+``step`` (optimizer), ``geometry`` (large-steps solves, the surface guard, remeshing, unwrapping
+and baking), ``setup`` (building renderers and targets for a stage).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from recon.io.atomic import atomic_path
+from recon.io.cameras import load_cameras
+from recon.io.images import write_exr
+from recon.io.mesh import Mesh, read_mesh, write_obj
+from recon.optimize import checkpoint as ckpt
+from recon.optimize import regularizers as reg
+from recon.optimize.guard import SurfaceGuard
+from recon.optimize.largesteps import AdamUniform, LargeSteps
+from recon.optimize.params import albedo_param, constant_map, roughness_param
+from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, topology_report, unwrap
+from recon.optimize.settings import OptimizeSettings, StageSettings
+from recon.optimize.views import Views, ViewSet, render_loss
+
+log = logging.getLogger(__name__)
+
+PHASES = ("render", "loss", "backward", "step", "geometry", "setup")
+MAP_NAMES = ("diffuse", "specular", "roughness")
+
+
+class OptimizeError(ValueError):
+    """Inputs the optimize stage cannot work with; the message names the file and the fix."""
+
+
+@dataclass
+class _Stage:
+    """Everything that lives for one stage (rebuilt from a checkpoint on resume)."""
+
+    index: int
+    settings: StageSettings
+    h: float  # absolute target edge length
+    mesh: Mesh  # connectivity + UVs; v_pos = accepted positions
+    v_init: np.ndarray  # positions at the start of the stage (the guard's baseline)
+    covered: np.ndarray  # (T, T) bool, texels inside the charts
+    topo: reg.MeshTopology
+    geom: torch.Tensor  # u (large steps) or v (adam), float64, requires grad
+    maps: dict  # name -> raw tensor (T, T, C), requires grad
+    opt_geom: torch.optim.Optimizer
+    opt_tex: torch.optim.Optimizer
+    ls: LargeSteps | None
+    guard: SurfaceGuard | None
+    renderer: object
+    targets: ViewSet
+
+
+class _Timer:
+    def __init__(self):
+        self.total = {p: 0.0 for p in PHASES}
+
+    def add(self, phase: str, seconds: float) -> None:
+        self.total[phase] += seconds
+
+
+def _params(settings: OptimizeSettings) -> dict:
+    kind = settings.parameterization
+    return {
+        "diffuse": albedo_param(kind),
+        "specular": albedo_param(kind),
+        "roughness": roughness_param(settings.r_min, kind),
+    }
+
+
+def _map_values(settings: OptimizeSettings, raw: dict) -> dict:
+    p = _params(settings)
+    return {k: p[k].value(raw[k]) for k in MAP_NAMES}
+
+
+# ---------------------------------------------------------------------- stage set-up
+def _initial_stage_mesh(init: Mesh, settings: OptimizeSettings, stage: StageSettings, h: float):
+    v, f = remesh(init.v_pos, init.t_pos_idx, h)
+    topo = topology_report(v, f)
+    if not topo["is_mesh_two_manifold"]:
+        raise OptimizeError(
+            f"the initial mesh remeshed to edge length {h:.4g} is not manifold; "
+            "check uv/mesh.obj (init_mesh stage) or use a larger first-stage edge_length"
+        )
+    T = int(stage.texture_size)
+    v_tex, t_tex_idx = unwrap(v, f, T)
+    mesh = Mesh(v, f, v_tex, t_tex_idx)
+    face, _, _ = rasterize_atlas(mesh, T)
+    maps = {
+        "diffuse": constant_map(T, 3, settings.init_diffuse),
+        "specular": constant_map(T, settings.specular_channels, settings.init_specular),
+        "roughness": constant_map(T, 1, settings.init_roughness),
+    }
+    return mesh, maps, face >= 0
+
+
+def _make_renderer(settings: OptimizeSettings, mesh: Mesh):
+    from recon.render import CollocatedRenderer, RenderSettings
+
+    rs = RenderSettings(spp=int(settings.spp), boundary=settings.boundary, variant=settings.variant,
+                        r_min=settings.r_min)
+    return CollocatedRenderer(mesh.t_pos_idx, mesh.v_tex, mesh.t_tex_idx, rs)
+
+
+def _build_stage(index, stage_settings, h, mesh, v_init, covered, map_values, settings, views, bbox_scale,
+                 opt_state=None, geom_raw=None, map_raw=None) -> _Stage:
+    """Set up a stage from its mesh and map values (or, on resume, the saved raw tensors)."""
+    topo = reg.MeshTopology.from_faces(mesh.t_pos_idx, len(mesh.v_pos))
+    scale_lr = stage_settings.lr_scale
+    ls = None
+    if settings.optimizer == "largesteps":
+        ls = LargeSteps(mesh.t_pos_idx, len(mesh.v_pos), settings.largesteps_lambda)
+        geom0 = torch.from_numpy(ls.M @ mesh.v_pos)
+    else:
+        geom0 = torch.from_numpy(mesh.v_pos.copy())
+    geom = (geom_raw.clone() if geom_raw is not None else geom0).to(torch.float64).requires_grad_(True)
+    p = _params(settings)
+    maps = {}
+    for k in MAP_NAMES:
+        raw = map_raw[k].clone() if map_raw is not None else p[k].raw(map_values[k])
+        maps[k] = raw.to(torch.float32).requires_grad_(True)
+    lr_g = settings.lr_geometry * bbox_scale * scale_lr
+    if ls is not None and settings.largesteps_uniform_adam:
+        opt_geom = AdamUniform([geom], lr=lr_g, betas=settings.betas)
+    else:
+        opt_geom = torch.optim.Adam([geom], lr=lr_g, betas=settings.betas)
+    opt_tex = torch.optim.Adam([maps[k] for k in MAP_NAMES], lr=settings.lr_texture * scale_lr, betas=settings.betas)
+    if opt_state is not None:
+        opt_geom.load_state_dict(opt_state["geom"])
+        opt_tex.load_state_dict(opt_state["tex"])
+    guard = (
+        SurfaceGuard(mesh.t_pos_idx, topo, v_init, max_halvings=settings.guard_max_halvings)
+        if settings.guard else None
+    )
+    targets = views.at(settings.stage_image_size(stage_settings))
+    renderer = _make_renderer(settings, mesh)
+    return _Stage(index, stage_settings, h, mesh, v_init, covered, topo, geom, maps, opt_geom, opt_tex, ls,
+                  guard, renderer, targets)
+
+
+def _positions(st: _Stage) -> torch.Tensor:
+    """(V, 3) float64 vertex positions, differentiable w.r.t. the geometry parameter."""
+    return st.ls.from_differential(st.geom) if st.ls is not None else st.geom
+
+
+def _stage_state(st: _Stage, next_iteration: int) -> dict:
+    return {
+        "stage": st.index,
+        "iteration": next_iteration,
+        "mesh": {"t_pos_idx": st.mesh.t_pos_idx, "v_tex": st.mesh.v_tex, "t_tex_idx": st.mesh.t_tex_idx,
+                 "v_pos": st.mesh.v_pos, "v_init": st.v_init},
+        "covered": st.covered,
+        "geom": st.geom.detach().clone(),
+        "maps": {k: v.detach().clone() for k, v in st.maps.items()},
+        "optimizer": {"geom": st.opt_geom.state_dict(), "tex": st.opt_tex.state_dict()},
+        "rng": {"scheme": "counter: numpy default_rng([seed, stage, iteration]); render seed blake2b"},
+    }
+
+
+# ---------------------------------------------------------------------- one iteration
+def _iteration(st: _Stage, it: int, settings: OptimizeSettings, weights: dict, tone_scale: float,
+               light: float, timer: _Timer) -> dict:
+    n = len(st.targets)
+    B = min(int(settings.views_per_iteration), n)
+    idx = np.sort(iteration_views(settings.seed, st.index, it, n, B))
+    t0 = time.perf_counter()
+    v = _positions(st)
+    t1 = time.perf_counter()
+    timer.add("geometry", t1 - t0)
+    vals = _map_values(settings, st.maps)
+    cams = [st.targets.cameras[i] for i in idx]
+    img = st.renderer.render_torch(v.to(torch.float32), vals["diffuse"], vals["specular"], vals["roughness"],
+                                   cams, light, seed=ckpt.render_seed(settings.seed, st.index, it))
+    t2 = time.perf_counter()
+    timer.add("render", t2 - t1)
+    terms = {"render": render_loss(img, st.targets.images[idx], st.targets.weights[idx], settings.tone_map, tone_scale)}
+    if weights["laplacian"]:
+        terms["laplacian"] = reg.laplacian_loss(v, st.topo, st.h, settings.laplacian)
+    if weights["edge"]:
+        terms["edge"] = reg.edge_length_loss(v, st.topo, st.h)
+    if weights["normal"]:
+        terms["normal"] = reg.normal_consistency_loss(v, st.topo)
+    valid = torch.from_numpy(st.covered)
+    if weights["specular"]:
+        terms["specular"] = reg.specular_bilateral_loss(
+            vals["specular"], vals["diffuse"], settings.bilateral_sigma_space, settings.bilateral_sigma_color,
+            settings.bilateral_radius, valid)
+    if weights["roughness"]:
+        terms["roughness"] = reg.roughness_tv_loss(vals["roughness"], valid)
+    total = sum(weights[k] * t.to(torch.float64) for k, t in terms.items())
+    t3 = time.perf_counter()
+    timer.add("loss", t3 - t2)
+    st.opt_geom.zero_grad(set_to_none=True)
+    st.opt_tex.zero_grad(set_to_none=True)
+    total.backward()
+    t4 = time.perf_counter()
+    timer.add("backward", t4 - t3)
+    st.opt_geom.step()
+    st.opt_tex.step()
+    p = _params(settings)
+    for k in MAP_NAMES:
+        p[k].project_(st.maps[k])
+    t5 = time.perf_counter()
+    timer.add("step", t5 - t4)
+    # ---- surface guard: accept the step, or back off where it breaks the surface ----
+    guard_info = {"halvings": 0, "frozen": 0, "reverted": False}
+    with torch.no_grad():
+        g = st.geom.detach().numpy()
+        v_new = st.ls.solve_np(g) if st.ls is not None else g.copy()
+        if st.guard is not None:
+            v_acc, guard_info = st.guard.accept(st.mesh.v_pos, v_new)
+            if guard_info["halvings"] or guard_info["frozen"] or guard_info["reverted"]:
+                st.geom.copy_(torch.from_numpy(st.ls.M @ v_acc if st.ls is not None else v_acc))
+        else:
+            v_acc = v_new
+        st.mesh.v_pos = v_acc
+    t6 = time.perf_counter()
+    timer.add("geometry", t6 - t5)
+    rec = {
+        "stage": st.index,
+        "iteration": it,
+        "views": idx.tolist(),
+        "loss": float(total.detach()),
+        **{f"loss_{k}": float(t.detach()) for k, t in terms.items()},
+        "guard_halvings": guard_info["halvings"],
+        "guard_frozen": guard_info["frozen"],
+        "guard_reverted": bool(guard_info["reverted"]),
+        "t_geometry": (t1 - t0) + (t6 - t5),
+        "t_render": t2 - t1,
+        "t_loss": t3 - t2,
+        "t_backward": t4 - t3,
+        "t_step": t5 - t4,
+    }
+    return rec
+
+
+def iteration_views(seed: int, stage: int, iteration: int, n_views: int, per_iteration: int) -> np.ndarray:
+    """The view indices of one iteration (distinct, a function of its arguments only)."""
+    return ckpt.iteration_rng(seed, stage, iteration).choice(n_views, size=min(per_iteration, n_views), replace=False)
+
+
+# ---------------------------------------------------------------------- the stage function
+def optimize_capture(
+    images: Sequence[str | os.PathLike],
+    masks: Sequence[str | os.PathLike] | None,
+    saturation_masks: Sequence[str | os.PathLike | None] | None,
+    cameras_json: str | os.PathLike,
+    init_mesh_obj: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    settings: OptimizeSettings = OptimizeSettings(),
+    progress: bool = True,
+    callback: Callable[[dict], None] | None = None,
+) -> dict:
+    """Optimize shape and SVBRDF maps from flash photos; write the optimize stage's outputs.
+
+    Parameters
+    ----------
+    images : linear RGB ``.exr`` photos (``poses/undistorted/<stem>.exr`` or ``linear/<stem>.exr``),
+        paired with cameras by stem.
+    masks : one ``masks/<stem>.png`` per image (nonzero = object), or None (all object).
+    saturation_masks : one ``linear/<stem>.sat.png`` per image (nonzero = clipped), or None.
+    cameras_json : ``poses/cameras.json``.
+    init_mesh_obj : ``uv/mesh.obj`` (positions are used; the stage makes its own atlas).
+    out_dir : ``results/<capture>/optimize``; gets ``mesh.obj``, ``diffuse.exr``, ``specular.exr``,
+        ``roughness.exr``, ``log.jsonl``, ``summary.json`` and ``checkpoints/``.
+    settings : OptimizeSettings
+    progress : show a tqdm bar (loss and ETA).
+    callback : called after every iteration with its log record (dict).
+
+    Returns
+    -------
+    dict, the summary also written to ``summary.json``.
+
+    A run whose ``checkpoints/last.pt`` matches these inputs and settings resumes from it and
+    ends with the same result as an uninterrupted run.
+    """
+    t_start = time.perf_counter()
+    out_dir = Path(out_dir)
+    ckpt_dir = out_dir / "checkpoints"
+    cams = load_cameras(cameras_json)
+    stages = settings.effective_stages()
+    views = Views(images, masks, saturation_masks, cams, max(settings.stage_image_size(s) for s in stages))
+    init = read_mesh(init_mesh_obj)
+    lo, hi = init.bbox()
+    bbox_scale = float(np.max(hi - lo))
+    if not bbox_scale > 0:
+        raise OptimizeError(f"{init_mesh_obj}: the initial mesh has an empty bounding box")
+    weights = settings.weights()
+    files = [cameras_json, init_mesh_obj, *images, *(masks or []), *(saturation_masks or [])]
+    fp = ckpt.fingerprint(settings.to_dict(), [str(f) if f is not None else None for f in files])
+    tone_scale = views.median_foreground
+    light = views.light_intensity
+
+    state = ckpt.load(ckpt_dir, fp)
+    timer = _Timer()
+    records: list[dict] = []
+    stage_infos: list[dict] = []
+    start_stage, start_it = 0, 0
+    if state is not None:
+        start_stage, start_it = int(state["stage"]), int(state["iteration"])
+        records = list(state["records"])
+        stage_infos = list(state["stage_infos"])
+        timer.total.update(state["timings"])
+        log.info("resuming from checkpoint: stage %d, iteration %d", start_stage, start_it)
+
+    total_iters = sum(int(s.iterations) for s in stages)
+    done_iters = sum(int(s.iterations) for s in stages[:start_stage]) + start_it
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=total_iters, initial=done_iters, desc="optimize", unit="it", dynamic_ncols=True)
+
+    st: _Stage | None = None
+    prev_mesh, prev_maps = None, None
+    for si in range(start_stage, len(stages)):
+        stage = stages[si]
+        h = float(stage.edge_length) * bbox_scale
+        t0 = time.perf_counter()
+        if state is not None and si == start_stage:
+            m = state["mesh"]
+            mesh = Mesh(m["v_pos"], m["t_pos_idx"], m["v_tex"], m["t_tex_idx"])
+            st = _build_stage(si, stage, h, mesh, np.asarray(m["v_init"]), np.asarray(state["covered"]), None,
+                              settings, views, bbox_scale, opt_state=state["optimizer"], geom_raw=state["geom"],
+                              map_raw=state["maps"])
+            timer.add("setup", time.perf_counter() - t0)
+            it0 = start_it
+        else:
+            if si == 0:
+                mesh, maps, covered = _initial_stage_mesh(init, settings, stage, h)
+            else:
+                mesh, maps, covered = remesh_and_rebake(prev_mesh, prev_maps, h, int(stage.texture_size))
+            t1 = time.perf_counter()
+            timer.add("geometry", t1 - t0)
+            st = _build_stage(si, stage, h, mesh, mesh.v_pos.copy(), covered, maps, settings, views, bbox_scale)
+            timer.add("setup", time.perf_counter() - t1)
+            it0 = 0
+            log.info("stage %d: %d vertices, %d faces, %dx%d maps, %dx%d images, edge %.4g",
+                     si, len(mesh.v_pos), len(mesh.t_pos_idx), stage.texture_size, stage.texture_size,
+                     st.targets.cameras[0].width, st.targets.cameras[0].height, h)
+            stage_infos.append(_stage_info(st))
+            _save(ckpt_dir, fp, st, 0, records, stage_infos, timer, done=False)
+        for it in range(it0, int(stage.iterations)):
+            rec = _iteration(st, it, settings, weights, tone_scale, light, timer)
+            records.append(rec)
+            if bar is not None:
+                bar.set_postfix(stage=si, loss=f"{rec['loss']:.4g}", refresh=False)
+                bar.update(1)
+            if (it + 1) % int(settings.checkpoint_every) == 0 or it + 1 == int(stage.iterations):
+                _save(ckpt_dir, fp, st, it + 1, records, stage_infos, timer, done=False)
+            if callback is not None:
+                callback(rec)
+        prev_mesh = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
+        with torch.no_grad():
+            prev_maps = {k: v.numpy().astype(np.float32) for k, v in _map_values(settings, st.maps).items()}
+    if bar is not None:
+        bar.close()
+
+    # ---- outputs ----
+    assert st is not None  # at least one stage always exists (settings guarantee it)
+    with torch.no_grad():
+        final_maps = {k: v.numpy().astype(np.float32) for k, v in _map_values(settings, st.maps).items()}
+    final = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
+    topo = topology_report(final.v_pos, final.t_pos_idx)
+    from recon.optimize.guard import self_intersecting_faces
+
+    n_si = int(self_intersecting_faces(final.v_pos, final.t_pos_idx).sum())
+    wall = time.perf_counter() - t_start
+    summary = _summary(settings, stage_infos, records, timer, final, topo, n_si, wall, bbox_scale)
+    _save(ckpt_dir, fp, st, int(stages[-1].iterations), records, stage_infos, timer, done=True)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for k in MAP_NAMES:
+        write_exr(out_dir / f"{k}.exr", final_maps[k])
+    with atomic_path(out_dir / "log.jsonl") as tmp:
+        tmp.write_text("".join(json.dumps(r) + "\n" for r in records))
+    with atomic_path(out_dir / "summary.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=1))
+    write_obj(out_dir / "mesh.obj", final)
+    log.info("optimize: done in %.1f s (geometry processing %.1f%% of the iteration time)", wall,
+             100 * summary["phase_fraction"]["geometry"])
+    return summary
+
+
+def _save(ckpt_dir, fp, st: _Stage, next_it: int, records, stage_infos, timer: _Timer, done: bool) -> None:
+    t0 = time.perf_counter()
+    state = _stage_state(st, next_it)
+    state.update(fingerprint=fp, records=records, stage_infos=stage_infos, timings=dict(timer.total),
+                 done=done)
+    ckpt.save(ckpt_dir, state)
+    timer.add("setup", time.perf_counter() - t0)
+
+
+def _stage_info(st: _Stage) -> dict:
+    return {
+        "stage": st.index,
+        "edge_length": st.h,
+        "texture_size": int(st.settings.texture_size),
+        "image_size": [int(st.targets.cameras[0].width), int(st.targets.cameras[0].height)],
+        "vertices": int(len(st.mesh.v_pos)),
+        "faces": int(len(st.mesh.t_pos_idx)),
+    }
+
+
+def _mean_tail(recs: list[dict], key: str) -> float | None:
+    tail = recs[-max(1, min(len(recs), 10)):]
+    vals = [r[key] for r in tail if key in r]
+    return float(np.mean(vals)) if vals else None
+
+
+def _summary(settings, stage_infos, records, timer, final, topo, n_si, wall, bbox_scale) -> dict:
+    loop_phases = ("render", "loss", "backward", "step", "geometry")
+    stages = []
+    for info in stage_infos:
+        recs = [r for r in records if r["stage"] == info["stage"]]
+        keys = sorted({k for r in recs for k in r if k.startswith("loss")})
+        stages.append(dict(
+            info,
+            iterations=len(recs),
+            seconds={p: float(sum(r[f"t_{p}"] for r in recs)) for p in loop_phases},
+            final_losses={k: _mean_tail(recs, k) for k in keys},
+            guard_backoffs=int(sum(r["guard_halvings"] > 0 or r["guard_frozen"] > 0 for r in recs)),
+            guard_reverted=int(sum(r["guard_reverted"] for r in recs)),
+        ))
+    phase = dict(timer.total)
+    in_loop = sum(phase[p] for p in loop_phases)
+    keys = sorted({k for k in (records[-1] if records else {}) if k.startswith("loss")})
+    return {
+        "wall_seconds": wall,
+        "phase_seconds": phase,
+        "phase_fraction": {p: (phase[p] / in_loop if in_loop > 0 else 0.0) for p in loop_phases},
+        "stages": stages,
+        "iterations": len(records),
+        "final_losses": {k: _mean_tail(records, k) for k in keys},
+        "mesh": {
+            "vertices": int(len(final.v_pos)),
+            "faces": int(len(final.t_pos_idx)),
+            "manifold": bool(topo["is_mesh_two_manifold"]),
+            "boundary_edges": int(topo["boundary_edges"]),
+            "self_intersecting_faces": n_si,
+        },
+        "bbox_scale": bbox_scale,
+        "settings": settings.to_dict(),
+    }

@@ -1,0 +1,207 @@
+"""Settings of the optimize stage: one frozen dataclass, built from a preset's ``optimize:`` section.
+
+Lengths are relative to the initial mesh's bounding box (longest side = 1), so one preset fits
+any object size; learning rates of the geometry are scaled the same way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+from recon.config import ConfigError, build_settings
+
+OPTIMIZERS = ("largesteps", "adam")
+BOUNDARIES = ("edge", "none", "projective")
+LAPLACIANS = ("uniform", "cotangent")
+TONE_MAPS = ("log", "srgb", "linear")
+PARAMETERIZATIONS = ("sigmoid", "clamp")
+
+
+@dataclass(frozen=True)
+class StageSettings:
+    """One coarse-to-fine stage: mesh topology and texture size stay fixed within it.
+
+    edge_length : target edge length of the remeshed surface, as a fraction of the bounding box's
+        longest side (the paper's "upsample the mesh" step, sec. 3.4).
+    texture_size : side of the square texture maps (texels).
+    iterations : optimizer steps in this stage.
+    image_size : longest image side (pixels) the photos are downsampled to; 0 = ``resolution``.
+    lr_scale : multiplies every learning rate in this stage (finer stages often take smaller steps).
+    """
+
+    edge_length: float = 0.02
+    texture_size: int = 256
+    iterations: int = 100
+    image_size: int = 0
+    lr_scale: float = 1.0
+
+    def __post_init__(self):
+        if not (0 < self.edge_length < 1):
+            raise ValueError(f"edge_length must be in (0, 1) (fraction of the bbox), got {self.edge_length}")
+        if not (4 <= int(self.texture_size) <= 8192):
+            raise ValueError(f"texture_size must be in [4, 8192], got {self.texture_size}")
+        if int(self.iterations) < 0:
+            raise ValueError(f"iterations must be >= 0, got {self.iterations}")
+        if int(self.image_size) < 0:
+            raise ValueError(f"image_size must be >= 0, got {self.image_size}")
+        if not self.lr_scale > 0:
+            raise ValueError(f"lr_scale must be > 0, got {self.lr_scale}")
+
+
+def _default_stages() -> tuple[StageSettings, ...]:
+    return (
+        StageSettings(edge_length=0.04, texture_size=128, iterations=100, image_size=128),
+        StageSettings(edge_length=0.025, texture_size=256, iterations=150),
+        StageSettings(edge_length=0.015, texture_size=512, iterations=150, lr_scale=0.5),
+    )
+
+
+@dataclass(frozen=True)
+class OptimizeSettings:
+    """Everything the optimize stage needs beyond its input files.
+
+    Rendering: ``resolution`` (longest image side in pixels, per stage overridable), ``spp``,
+    ``boundary`` (the renderer's silhouette term: "edge", "projective", or "none" = ablation),
+    ``variant`` (Mitsuba variant, None = recon.mi's default).
+
+    Schedule: ``stages`` (coarse to fine), ``views_per_iteration``, ``seed``,
+    ``checkpoint_every`` (iterations), ``coarse_to_fine`` (False = ablation: one stage with the
+    last stage's mesh/texture size and all iterations).
+
+    Optimizer: ``optimizer`` "largesteps" (Nicolet et al. 2021: vertex positions through
+    u = (I + lambda L) v, L the combinatorial Laplacian, and Adam on u) or "adam" (the paper:
+    plain Adam on v with the Laplacian regularizer); ``lr_geometry`` (relative to the bbox's
+    longest side), ``lr_texture`` (in parameter units), ``largesteps_lambda``,
+    ``largesteps_uniform_adam`` (Nicolet's AdamUniform for u instead of Adam), ``betas``.
+
+    Loss (the paper's eq. 6 and sec. 3.3; each term normalized as documented in
+    :mod:`recon.optimize.regularizers`): ``w_render``, ``w_laplacian``, ``w_edge``, ``w_normal``,
+    ``w_specular``, ``w_roughness``; ``laplacian`` "uniform" or "cotangent"; ``tone_map``
+    (Phi: "log" = log(1 + x/s) with s the median foreground target value, "srgb", "linear");
+    ``bilateral_sigma_space`` (texels), ``bilateral_sigma_color``, ``bilateral_radius``.
+    Ablation switches: ``use_laplacian``, ``use_normal_edge``, ``use_material_priors``.
+
+    Materials: ``init_diffuse``, ``init_specular``, ``init_roughness`` (constant initial maps,
+    as in the paper), ``specular_channels`` (1 or 3), ``r_min``, ``parameterization``
+    ("sigmoid": value = sigmoid(logit), roughness = r_min + (1 - r_min) sigmoid; "clamp": the
+    value itself, projected back into range after each step).
+
+    Robust surface evolution: ``guard`` (reject self-intersections by halving the displacement
+    of the offending vertices), ``guard_max_halvings``.
+    """
+
+    resolution: int = 256
+    spp: int = 4
+    boundary: str = "edge"
+    variant: str | None = None
+    views_per_iteration: int = 4
+    stages: tuple = field(default_factory=_default_stages)
+    seed: int = 0
+    checkpoint_every: int = 50
+    coarse_to_fine: bool = True
+    optimizer: str = "largesteps"
+    lr_geometry: float = 0.005
+    lr_texture: float = 0.03
+    largesteps_lambda: float = 2.0
+    largesteps_uniform_adam: bool = False
+    betas: tuple = (0.9, 0.999)
+    w_render: float = 1.0
+    w_laplacian: float = 0.1
+    w_edge: float = 1.0
+    w_normal: float = 0.01
+    w_specular: float = 0.01
+    w_roughness: float = 0.001
+    laplacian: str = "uniform"
+    tone_map: str = "log"
+    bilateral_sigma_space: float = 1.0
+    bilateral_sigma_color: float = 0.1
+    bilateral_radius: int = 2
+    use_laplacian: bool = True
+    use_normal_edge: bool = True
+    use_material_priors: bool = True
+    init_diffuse: float = 0.3
+    init_specular: float = 0.1
+    init_roughness: float = 0.4
+    specular_channels: int = 1
+    r_min: float = 0.02
+    parameterization: str = "sigmoid"
+    guard: bool = True
+    guard_max_halvings: int = 8
+
+    def __post_init__(self):
+        stages = tuple(
+            s if isinstance(s, StageSettings) else build_settings(StageSettings, s, "optimize.stages")
+            for s in (self.stages or ())
+        )
+        if not stages:
+            raise ValueError("stages must list at least one stage")
+        object.__setattr__(self, "stages", stages)
+        object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
+        choices = {
+            "optimizer": OPTIMIZERS,
+            "boundary": BOUNDARIES,
+            "laplacian": LAPLACIANS,
+            "tone_map": TONE_MAPS,
+            "parameterization": PARAMETERIZATIONS,
+        }
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
+        for name in ("resolution", "spp", "views_per_iteration", "checkpoint_every"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.specular_channels not in (1, 3):
+            raise ValueError(f"specular_channels must be 1 or 3, got {self.specular_channels}")
+        if not (0 < self.r_min < 1):
+            raise ValueError(f"r_min must be in (0, 1), got {self.r_min}")
+        for name in ("init_diffuse", "init_specular"):
+            if not (0 <= getattr(self, name) <= 1):
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if not (self.r_min <= self.init_roughness <= 1):
+            raise ValueError(f"init_roughness must be in [r_min, 1], got {self.init_roughness}")
+        for name in ("lr_geometry", "lr_texture", "largesteps_lambda", "w_render"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("w_laplacian", "w_edge", "w_normal", "w_specular", "w_roughness"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+
+    # ---- derived ----
+    def effective_stages(self) -> tuple[StageSettings, ...]:
+        """The stages actually run: all of them, or (ablation) one with the last stage's sizes."""
+        if self.coarse_to_fine or len(self.stages) == 1:
+            return self.stages
+        last = self.stages[-1]
+        total = sum(int(s.iterations) for s in self.stages)
+        return (dataclasses.replace(last, iterations=total),)
+
+    def stage_image_size(self, stage: StageSettings) -> int:
+        return int(stage.image_size) or int(self.resolution)
+
+    def weights(self) -> dict[str, float]:
+        """Loss weights after the ablation switches."""
+        return {
+            "render": self.w_render,
+            "laplacian": self.w_laplacian if self.use_laplacian else 0.0,
+            "edge": self.w_edge if self.use_normal_edge else 0.0,
+            "normal": self.w_normal if self.use_normal_edge else 0.0,
+            "specular": self.w_specular if self.use_material_priors else 0.0,
+            "roughness": self.w_roughness if self.use_material_priors else 0.0,
+        }
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["stages"] = [dataclasses.asdict(s) for s in self.stages]
+        d["betas"] = list(self.betas)
+        return d
+
+
+def settings_from_dict(values: dict | None, source: str = "optimize settings") -> OptimizeSettings:
+    """Build :class:`OptimizeSettings` from a preset/capture.yaml section (unknown keys rejected)."""
+    try:
+        return build_settings(OptimizeSettings, values, source)
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as e:  # raised while building the nested stages
+        raise ConfigError(f"{source}: invalid optimize settings ({e})") from e

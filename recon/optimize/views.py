@@ -1,0 +1,175 @@
+"""Target views: photos, masks and clipped-pixel masks at a stage's resolution, and the loss.
+
+A photo is paired with its camera by file stem. At a stage's resolution (longest side ``s``)
+each photo is box-filtered (area averaging) after its background is set to zero by the mask,
+so a border pixel holds the mask-weighted average like a rendered pixel that the silhouette
+crosses; the clipped-pixel mask is max-pooled (a low-resolution pixel touched by any clipped
+photo pixel is excluded). Cameras are scaled with :meth:`Camera.scaled`.
+
+The rendering loss (eq. 6) compares ``Phi(render)`` with ``Phi(target)``: the same tone map on
+both sides, the same background (zero: the target's background is masked to zero and the
+renderer has nothing there), clipped pixels weighted zero on both sides. The render is not
+multiplied by the mask, since that would hide where the surface spills over the silhouette.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from recon.io.cameras import Camera, CameraSet
+from recon.io.images import ImageError, read_exr, read_mask
+
+log = logging.getLogger(__name__)
+
+
+class ViewsError(ValueError):
+    """Input photos/masks that do not fit the cameras; the message names the file and the fix."""
+
+
+def _resize_area(a: np.ndarray, w: int, h: int) -> np.ndarray:
+    import cv2
+
+    a = np.asarray(a, dtype=np.float32)
+    if a.shape[1] == w and a.shape[0] == h:
+        return a.copy()
+    out = cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA)
+    return out.reshape(h, w, -1) if a.ndim == 3 else out
+
+
+@dataclass
+class ViewSet:
+    """Targets at one resolution (N views of h x w).
+
+    images : (N, h, w, 3) float32 torch, linear, background zero
+    weights : (N, h, w, 1) float32 torch, 0 on clipped pixels, else 1
+    masks : (N, h, w) float32 numpy, object coverage in [0, 1]
+    cameras : tuple of N cameras at this resolution
+    """
+
+    images: torch.Tensor
+    weights: torch.Tensor
+    masks: np.ndarray
+    cameras: tuple[Camera, ...]
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+
+class Views:
+    """All target photos of a capture, kept at the largest resolution any stage needs."""
+
+    def __init__(
+        self,
+        images: Sequence[str | os.PathLike],
+        masks: Sequence[str | os.PathLike] | None,
+        saturation_masks: Sequence[str | os.PathLike | None] | None,
+        cameras: CameraSet,
+        max_size: int,
+    ):
+        images = [Path(p) for p in images]
+        if not images:
+            raise ViewsError("no input images were given to the optimize stage")
+        n = len(images)
+        if masks is not None and len(masks) != n:
+            raise ViewsError(f"{len(masks)} masks for {n} images; give one mask per image (same stems)")
+        if saturation_masks is not None and len(saturation_masks) != n:
+            raise ViewsError(f"{len(saturation_masks)} saturation masks for {n} images; give one per image")
+        by_stem = cameras.by_stem()
+        self.stems, self.cameras, imgs, msks, sats = [], [], [], [], []
+        for k, path in enumerate(images):
+            cam = by_stem.get(path.stem)
+            if cam is None:
+                raise ViewsError(f"{path}: no camera with image stem '{path.stem}' in cameras.json")
+            if path.suffix.lower() != ".exr":
+                raise ViewsError(f"{path}: the optimize stage reads linear .exr images (the linearize/poses outputs)")
+            rgb = read_exr(path)[:, :, :3]
+            if rgb.shape[2] != 3:
+                raise ViewsError(f"{path}: expected an RGB image, got {rgb.shape[2]} channel(s)")
+            H, W = rgb.shape[:2]
+            if (W, H) != (cam.width, cam.height):
+                raise ViewsError(
+                    f"{path}: image is {W}x{H} but its camera says {cam.width}x{cam.height}; "
+                    "pass the undistorted images that belong to poses/cameras.json"
+                )
+            if not np.all(np.isfinite(rgb)):
+                raise ViewsError(f"{path}: contains NaN or Inf pixels")
+            m = np.ones((H, W), np.float32) if masks is None else self._mask(masks[k], (H, W), "mask")
+            s = (
+                np.zeros((H, W), np.float32)
+                if saturation_masks is None or saturation_masks[k] is None
+                else self._mask(saturation_masks[k], (H, W), "saturation mask")
+            )
+            factor = min(1.0, max_size / max(W, H))
+            c = cam.scaled(factor) if factor < 1 else cam
+            imgs.append(_resize_area(rgb * m[:, :, None], c.width, c.height))
+            msks.append(_resize_area(m, c.width, c.height))
+            sats.append(_resize_area(s, c.width, c.height) > 0)
+            self.stems.append(path.stem)
+            self.cameras.append(c)
+        sizes = {(c.width, c.height) for c in self.cameras}
+        if len(sizes) != 1:
+            raise ViewsError(f"all views must have the same size; got {sorted(sizes)}")
+        self.images = np.stack(imgs)
+        self.masks = np.stack(msks)
+        self.saturated = np.stack(sats)
+        self.light_intensity = float(cameras.light_intensity)
+        fg = self.images[(self.masks > 0.5) & ~self.saturated]
+        self.median_foreground = float(np.median(fg)) if fg.size else 1.0
+        if not self.median_foreground > 0:
+            self.median_foreground = float(np.mean(self.images)) or 1.0
+
+    @staticmethod
+    def _mask(path, shape, what) -> np.ndarray:
+        try:
+            m = read_mask(path)
+        except ImageError as e:
+            raise ViewsError(f"{path}: cannot read the {what} ({e})") from e
+        if m.shape != shape:
+            raise ViewsError(f"{path}: {what} is {m.shape[1]}x{m.shape[0]}, its image {shape[1]}x{shape[0]}")
+        return m.astype(np.float32)
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def at(self, size: int) -> ViewSet:
+        """The targets with longest side ``size`` (or the stored size when that is smaller)."""
+        W, H = self.cameras[0].width, self.cameras[0].height
+        factor = min(1.0, size / max(W, H))
+        cams = tuple(c.scaled(factor) if factor < 1 else c for c in self.cameras)
+        w, h = cams[0].width, cams[0].height
+        imgs = np.stack([_resize_area(im, w, h) for im in self.images])
+        msks = np.stack([_resize_area(m, w, h) for m in self.masks])
+        sats = np.stack([_resize_area(s.astype(np.float32), w, h) > 0 for s in self.saturated])
+        weights = (~sats).astype(np.float32)[..., None]
+        return ViewSet(torch.from_numpy(imgs), torch.from_numpy(weights), msks, cams)
+
+
+# ---- Tone mapping and the rendering loss ----
+def tone_map(x: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
+    """Phi: "log" = log(1 + x/scale), "srgb" = sRGB encoding of min(x, 1), "linear" = x."""
+    if kind == "log":
+        return torch.log1p(x.clamp(min=0.0) / scale)
+    if kind == "srgb":
+        c = x.clamp(0.0, 1.0)
+        return torch.where(c <= 0.0031308, 12.92 * c, 1.055 * c.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
+    if kind == "linear":
+        return x
+    raise ValueError(f"tone map must be 'log', 'srgb' or 'linear', got {kind!r}")
+
+
+def render_loss(render: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
+    """Eq. 6 per pixel: ``mean(w |Phi(render) - Phi(target)|)`` over views, pixels and channels.
+
+    render, target : (B, h, w, 3); weights : (B, h, w, 1) (0 = clipped pixel).
+    """
+    if render.shape != target.shape:
+        raise ValueError(f"render {tuple(render.shape)} and target {tuple(target.shape)} differ")
+    d = (tone_map(render, kind, scale) - tone_map(target, kind, scale)).abs() * weights
+    return d.mean()
