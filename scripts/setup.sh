@@ -28,16 +28,18 @@ if [ ${#need_pkgs[@]} -gt 0 ]; then
   apt-get install -y -qq --no-install-recommends "${need_pkgs[@]}" >/dev/null
 fi
 
-# ---- Node tools (the Khronos glTF validator, used by tests and the report) ----
-if [ -f tools/gltf-validator/package-lock.json ]; then
-  lock_sum=$(sha256sum tools/gltf-validator/package-lock.json | cut -d' ' -f1)
-  if [ ! -f tools/gltf-validator/node_modules/.recon-stamp ] || \
-     [ "$(cat tools/gltf-validator/node_modules/.recon-stamp)" != "$lock_sum" ]; then
-    log "installing the glTF validator (npm ci)"
-    npm ci --silent --no-audit --no-fund --prefix tools/gltf-validator >/dev/null
-    echo "$lock_sum" > tools/gltf-validator/node_modules/.recon-stamp
+# ---- Node tools (tools/<name>/package-lock.json: the glTF validator, the report's model-viewer) ----
+for lock in tools/*/package-lock.json; do
+  [ -f "$lock" ] || continue
+  tool=$(dirname "$lock")
+  lock_sum=$(sha256sum "$lock" | cut -d' ' -f1)
+  if [ ! -f "$tool/node_modules/.recon-stamp" ] || \
+     [ "$(cat "$tool/node_modules/.recon-stamp")" != "$lock_sum" ]; then
+    log "installing $tool (npm ci)"
+    npm ci --silent --no-audit --no-fund --prefix "$tool" >/dev/null
+    echo "$lock_sum" > "$tool/node_modules/.recon-stamp"
   fi
-fi
+done
 
 # ---- Python environment ----
 py=${PYTHON:-python3.11}

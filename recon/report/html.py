@@ -1,0 +1,173 @@
+"""The report page: one self-contained ``index.html`` that links only files inside report/.
+
+Everything shown is passed in as plain data; this module only formats. Text from files (stems,
+stage names, the material model) is HTML-escaped, file names are URL-quoted.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+from dataclasses import dataclass, field
+from urllib.parse import quote
+
+CSS = """
+body { font-family: system-ui, sans-serif; margin: 0 auto; max-width: 1320px; padding: 0 18px 40px;
+       color: #1d1d1f; background: #fafafa; }
+h1 { font-size: 1.6em; margin: 18px 0 4px; } h2 { font-size: 1.2em; margin: 28px 0 10px;
+     border-bottom: 1px solid #ddd; padding-bottom: 4px; }
+.sub { color: #666; margin: 0 0 12px; }
+.cards { display: flex; flex-wrap: wrap; gap: 10px; }
+.card { background: #fff; border: 1px solid #e3e3e3; border-radius: 6px; padding: 8px 12px; min-width: 120px; }
+.card .k { font-size: 0.78em; color: #666; } .card .v { font-size: 1.25em; font-weight: 600; }
+model-viewer { width: 100%; height: 520px; background-color: #3a3a3a; border-radius: 6px; }
+.views { display: grid; grid-template-columns: repeat(auto-fill, minmax(600px, 1fr)); gap: 14px; }
+.view { background: #fff; border: 1px solid #e3e3e3; border-radius: 6px; padding: 8px; }
+.view .row { display: grid; grid-template-columns: repeat(3, 1fr); gap: 4px; }
+.view img, .maps img, .plots img { width: 100%; height: auto; display: block; image-rendering: auto; }
+.view .cap { font-size: 0.85em; margin-top: 4px; display: flex; justify-content: space-between; }
+.view .lbl { font-size: 0.72em; color: #777; text-align: center; }
+.maps, .plots { display: grid; grid-template-columns: repeat(auto-fill, minmax(380px, 1fr)); gap: 14px; }
+figure { margin: 0; } figcaption { font-size: 0.85em; color: #555; margin-top: 4px; }
+table { border-collapse: collapse; font-size: 0.9em; } td, th { padding: 3px 10px; border-bottom: 1px solid #eee; text-align: left; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; }
+.note { font-size: 0.85em; color: #666; } pre { background: #fff; border: 1px solid #eee; padding: 8px; overflow-x: auto; }
+"""
+
+
+def fmt(x, digits: int = 4) -> str:
+    """A number for display (``-`` for None/NaN)."""
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "-"
+    if isinstance(x, (int, float)) and not isinstance(x, bool):
+        return f"{x:.{digits}g}"
+    return html.escape(str(x))
+
+
+def src(name: str) -> str:
+    return html.escape(quote(name))
+
+
+@dataclass
+class ViewEntry:
+    stem: str
+    rmse: float
+    files: dict  # role -> file name: input, render, error
+    labels: tuple = ("input", "re-render", "error")
+
+
+@dataclass
+class Page:
+    capture: str
+    preset: str | None
+    material_model: object = None
+    cards: list = field(default_factory=list)  # (label, value string)
+    viewer_head: str = ""
+    viewer_body: str = ""
+    views: list = field(default_factory=list)  # ViewEntry
+    views_note: str = ""
+    error_colorbar: str = ""
+    maps: list = field(default_factory=list)  # (file, caption)
+    plots: list = field(default_factory=list)  # (file, caption)
+    stage_times: dict = field(default_factory=dict)
+    phase_times: dict = field(default_factory=dict)
+    phase_source: str = ""
+    optimize_stages: tuple = ((), ())  # (column names, rows) of the coarse-to-fine stages
+    gt_metrics: dict = field(default_factory=dict)
+    gt_views: list = field(default_factory=list)  # ViewEntry with gt labels
+    gt_note: str = ""
+    notes: list = field(default_factory=list)
+
+
+def _table(rows, head=None) -> str:
+    h = "".join(f"<th>{html.escape(c)}</th>" for c in head) if head else ""
+    body = "".join(
+        "<tr>" + "".join(f'<td class="num">{fmt(c)}</td>' if isinstance(c, (int, float)) and not isinstance(c, bool)
+                         else f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>"
+        for r in rows
+    )
+    return f"<table>{'<tr>' + h + '</tr>' if h else ''}{body}</table>"
+
+
+def _view_block(v: ViewEntry, rmse_label: str = "RMSE") -> str:
+    imgs = "".join(
+        f'<a href="{src(v.files[k])}"><img loading="lazy" src="{src(v.files[k])}" alt="{html.escape(v.stem)} {lbl}"></a>'
+        for k, lbl in zip(("input", "render", "error"), v.labels, strict=True)
+    )
+    labels = "".join(f'<div class="lbl">{html.escape(lbl)}</div>' for lbl in v.labels)
+    return (f'<div class="view" id="view-{html.escape(v.stem)}"><div class="row">{imgs}</div>'
+            f'<div class="row">{labels}</div>'
+            f'<div class="cap"><b>{html.escape(v.stem)}</b><span>{rmse_label} {fmt(v.rmse)}</span></div></div>')
+
+
+def render_page(p: Page) -> str:
+    """The whole ``index.html`` as a string."""
+    parts = [
+        "<!doctype html>", '<html lang="en"><head><meta charset="utf-8">',
+        '<meta name="viewport" content="width=device-width, initial-scale=1">',
+        f"<title>recon report: {html.escape(p.capture)}</title>",
+        f"<style>{CSS}</style>", p.viewer_head, "</head><body>",
+        f"<h1>{html.escape(p.capture)}</h1>",
+        f'<p class="sub">preset <b>{html.escape(p.preset or "unknown")}</b>'
+        + (f" &middot; material model <b>{_material_text(p.material_model)}</b>" if p.material_model is not None else "")
+        + ' &middot; <a href="metrics.json">metrics.json</a></p>',
+    ]
+    if p.cards:
+        parts.append('<div class="cards">' + "".join(
+            f'<div class="card"><div class="k">{html.escape(k)}</div><div class="v">{html.escape(v)}</div></div>'
+            for k, v in p.cards) + "</div>")
+    parts += ["<h2>3D asset</h2>", p.viewer_body]
+
+    parts.append("<h2>Views: input, re-render of the optimized model, error</h2>")
+    if p.views_note:
+        parts.append(f'<p class="note">{html.escape(p.views_note)}</p>')
+    parts.append(p.error_colorbar)
+    parts.append('<div class="views">' + "".join(_view_block(v) for v in p.views) + "</div>")
+
+    if p.gt_metrics or p.gt_views:
+        parts.append("<h2>Against the ground truth</h2>")
+        if p.gt_note:
+            parts.append(f'<p class="note">{html.escape(p.gt_note)}</p>')
+        rows = [(k, v) for k, v in p.gt_metrics.items() if isinstance(v, (int, float)) and not isinstance(v, bool)]
+        for k, v in p.gt_metrics.items():
+            if isinstance(v, dict) and k != "alignment":
+                rows += [(f"{k}.{kk}", vv) for kk, vv in v.items()
+                         if isinstance(vv, (int, float)) and not isinstance(vv, bool)]
+        parts.append(_table(rows, ("metric", "value")))
+        if "alignment" in p.gt_metrics:
+            parts.append("<details><summary>alignment (estimated frame to ground truth)</summary><pre>"
+                         + html.escape(json.dumps(p.gt_metrics["alignment"], indent=1)) + "</pre></details>")
+        if p.gt_views:
+            parts.append('<div class="views">' + "".join(_view_block(v) for v in p.gt_views) + "</div>")
+
+    if p.maps:
+        parts.append("<h2>Texture maps</h2>")
+        parts.append('<div class="maps">' + "".join(
+            f'<figure><a href="{src(f)}"><img src="{src(f)}" alt="{html.escape(c)}"></a>'
+            f"<figcaption>{html.escape(c)}</figcaption></figure>" for f, c in p.maps) + "</div>")
+
+    parts.append("<h2>Optimization and timings</h2>")
+    if p.plots:
+        parts.append('<div class="plots">' + "".join(
+            f'<figure><img src="{src(f)}" alt="{html.escape(c)}"><figcaption>{html.escape(c)}</figcaption></figure>'
+            for f, c in p.plots) + "</div>")
+    if p.optimize_stages and p.optimize_stages[1]:
+        parts.append("<h3>Coarse-to-fine stages of the optimization (summary.json)</h3>")
+        parts.append(_table(p.optimize_stages[1], p.optimize_stages[0]))
+    if p.stage_times:
+        parts.append("<h3>Wall time per stage (Snakemake benchmarks)</h3>")
+        parts.append(_table([(k, v) for k, v in p.stage_times.items()], ("stage", "seconds")))
+    if p.phase_times:
+        parts.append(f"<h3>Optimization phases (from {html.escape(p.phase_source)})</h3>")
+        parts.append(_table([(k, v) for k, v in p.phase_times.items()], ("phase", "seconds")))
+    for n in p.notes:
+        parts.append(f'<p class="note">{html.escape(n)}</p>')
+    parts.append("</body></html>")
+    return "\n".join(x for x in parts if x)
+
+
+def _material_text(model) -> str:
+    if isinstance(model, str):
+        return html.escape(model)
+    return html.escape(json.dumps(model, sort_keys=True))

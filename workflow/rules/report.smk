@@ -1,0 +1,34 @@
+# Report (DESIGN sections 2, 5, 6): report/index.html (opens offline: inputs beside re-renders
+# and error maps, texture maps, loss curves, timings, the asset in model-viewer) and
+# report/metrics.json. recon.report.make_report replaces the whole report/ folder atomically,
+# so the log and the benchmark live outside it. Per-stage wall times are read from
+# results/<capture>/benchmarks/*.tsv; metrics against <capture>/gt/ when that folder exists.
+# Each view's linear image is taken from poses/undistorted/ when the poses stage wrote one
+# there, else from linear/.
+
+
+rule report:
+    input:
+        mesh=f"{RESULTS}/{{capture}}/optimize/mesh.obj",
+        diffuse=f"{RESULTS}/{{capture}}/optimize/diffuse.exr",
+        specular=f"{RESULTS}/{{capture}}/optimize/specular.exr",
+        roughness=f"{RESULTS}/{{capture}}/optimize/roughness.exr",
+        optimize_log=f"{RESULTS}/{{capture}}/optimize/log.jsonl",
+        glb=f"{RESULTS}/{{capture}}/export/asset.glb",
+        cameras=f"{RESULTS}/{{capture}}/poses/cameras.json",
+        linear=f"{RESULTS}/{{capture}}/linear/linear.json",
+        masks=f"{RESULTS}/{{capture}}/masks/masks.json",
+    output:
+        html=f"{RESULTS}/{{capture}}/report/index.html",
+        metrics=f"{RESULTS}/{{capture}}/report/metrics.json",
+    log:
+        f"{RESULTS}/{{capture}}/logs/report.log",
+    benchmark:
+        f"{RESULTS}/{{capture}}/benchmarks/report.tsv"
+    params:
+        capture_dir=get_capture_dir,
+        undistorted=f"{RESULTS}/{{capture}}/poses/undistorted",
+        benchmarks=f"{RESULTS}/{{capture}}/benchmarks",
+        settings=get_settings("report"),
+    script:
+        "../scripts/report.py"
