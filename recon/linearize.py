@@ -87,7 +87,11 @@ class LinearizeSettings:
     Attributes
     ----------
     demosaic : str
-        LibRaw demosaic algorithm, one of :data:`DEMOSAIC_ALGORITHMS`.
+        LibRaw demosaic algorithm, one of :data:`DEMOSAIC_ALGORITHMS`. Default 'DHT': on
+        synthetic renders with pixel-scale texture it had the smallest per-pixel error and
+        colour bias (foreground channel means within 1 %, against up to 9 % red bias for AHD,
+        PPG, DCB, AAHD and VNG), at about 2x AHD's time; every algorithm keeps the native
+        CFA samples exactly. With 'VNG' (wider footprint) use ``saturation_radius`` 2 or more.
     white_balance : str
         'as_shot_median': ONE white balance for all views, the per-channel median of the views'
         as-shot camera neutrals (the flash does not change); 'fixed': ``wb_multipliers``.
@@ -112,7 +116,7 @@ class LinearizeSettings:
         JPEG quality of the previews.
     """
 
-    demosaic: str = "AHD"
+    demosaic: str = "DHT"
     white_balance: str = "as_shot_median"
     wb_multipliers: tuple | None = None
     saturation_threshold: float = 0.98
