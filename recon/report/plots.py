@@ -34,31 +34,35 @@ def _save(fig, path) -> None:
 
 
 def loss_plot(curves: LossCurves, path: str | os.PathLike) -> None:
-    """Loss against iteration, one colour band per coarse-to-fine stage; log y when positive."""
+    """Loss against iteration, one colour band per coarse-to-fine stage.
+
+    The y axis is logarithmic when the total ``loss`` is positive (terms that are zero somewhere
+    are drawn where they are positive)."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.0, 3.5))
     x = curves.iteration
     stages = list(dict.fromkeys(curves.stage))
     if len(stages) > 1:
+        starts = [x[np.array([st == s for st in curves.stage])].min() for s in stages]
         for k, s in enumerate(stages):
-            sel = np.array([st == s for st in curves.stage])
-            ax.axvspan(x[sel].min(), x[sel].max(), color=f"C{k % 10}", alpha=0.08, lw=0)
-            ax.text(x[sel].min(), 1.0, f" stage {s}", transform=ax.get_xaxis_transform(),
+            end = starts[k + 1] if k + 1 < len(stages) else x.max()
+            ax.axvspan(starts[k], end, color=f"C{k % 10}", alpha=0.08, lw=0)
+            ax.text(starts[k], 1.0, f" stage {s}", transform=ax.get_xaxis_transform(),
                     va="top", fontsize=8)
-    positive = True
+    main = curves.series.get("loss")
+    log_y = main is not None and np.isfinite(main).any() and bool(np.all(main[np.isfinite(main)] > 0))
     for name, y in curves.series.items():
-        ok = np.isfinite(y)
+        ok = np.isfinite(y) & ((y > 0) if log_y else True)
         if not ok.any():
             continue
-        positive &= bool(np.all(y[ok] > 0))
         ax.plot(x[ok], y[ok], lw=1.6 if name == "loss" else 0.9,
                 color="k" if name == "loss" else None, label=name)
-    if positive:
+    if log_y:
         ax.set_yscale("log")
     ax.set_xlabel("iteration")
     ax.set_ylabel("loss")
     if len(curves.series) > 1:
-        ax.legend(fontsize=8, frameon=False)
+        ax.legend(fontsize=8, frameon=False, loc="center left", bbox_to_anchor=(1.01, 0.5))
     ax.grid(alpha=0.3)
     _save(fig, path)
 

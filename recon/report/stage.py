@@ -94,7 +94,7 @@ class ReportSettings:
     gt_views: int = 8
     chamfer_samples: int = 100_000
     texture_samples: int = 100_000
-    texture_max_distance: float = 0.01
+    texture_max_distance: float = 0.02
     texture_display_size: int = 1024
     variant: str = ""
     viewer_js: str = ""
@@ -402,5 +402,8 @@ def _gt_metrics(model, cams: CameraSet, gt, light: float, settings: ReportSettin
         f"{'held-out' if held_out else 'true (none held out)'} views rendered with the collocated light. "
         "Texture RMSE compares map values at closest surface points (linear values in [0, 1])."
     )
+    if out["texture_rmse"]["fraction"] == 0.0:
+        page.gt_note += (f" No ground-truth surface sample has reconstructed surface within "
+                         f"{settings.texture_max_distance} (unit bbox): texture errors not computed.")
     page.gt_metrics = out
     return out
