@@ -231,6 +231,7 @@ class _View:
     default_crop: tuple | None = None  # (x, y, w, h)
     linearization_table_max: int | None = None
     baseline_exposure: float | None = None
+    opcode_lists: list = dataclasses.field(default_factory=list)
     make: str | None = None
     model: str | None = None
 
@@ -302,7 +303,7 @@ def _read_raw_meta(path: Path) -> _View:
     with open(path, "rb") as f:
         is_tiff = f.read(4) in (b"II*\x00", b"MM\x00*")
     tags0, tags_raw, exif = {}, {}, {}
-    if path.suffix.lower() == ".dng" or is_tiff:
+    if path.suffix.lower() == ".dng":
         try:
             tags0, tags_raw, exif = _read_tiff_tags(path)
         except Exception as e:
@@ -310,6 +311,11 @@ def _read_raw_meta(path: Path) -> _View:
                 f"{path}: corrupt or truncated RAW file ({e}); "
                 "copy the file from the camera again or remove it from images/"
             ) from e
+    elif is_tiff:  # TIFF-based camera RAW (CR2, NEF, ARW, ...): EXIF when tifffile can read it
+        try:
+            tags0, tags_raw, exif = _read_tiff_tags(path)
+        except Exception as e:
+            log.warning("%s: TIFF metadata not readable (%s); using LibRaw's", path, e)
     view.is_dng = "DNGVersion" in tags0
     if path.suffix.lower() == ".dng" and not view.is_dng:
         raise LinearizeError(f"{path}: not a DNG file (no DNGVersion tag); re-export it as DNG")
@@ -379,6 +385,12 @@ def _read_raw_meta(path: Path) -> _View:
         if lt is not None:
             view.linearization_table_max = int(np.max(np.asarray(lt)))
         view.baseline_exposure = _num(_rationals(tag("BaselineExposure"), 1))
+        view.opcode_lists = [n for n in ("OpcodeList1", "OpcodeList2", "OpcodeList3") if tag(n) is not None]
+        if view.opcode_lists:
+            log.warning(
+                "%s: DNG %s not applied (lens shading GainMap / distortion opcodes are ignored)",
+                path, ", ".join(view.opcode_lists),
+            )
     else:
         cm = rgb_xyz[:3]
         if not np.any(cm):
@@ -831,6 +843,7 @@ def linearize_capture(
                         "default_crop": list(view.default_crop) if view.default_crop else None,
                         "linearization_table": view.linearization_table_max is not None,
                         "baseline_exposure": view.baseline_exposure,
+                        "opcode_lists_ignored": view.opcode_lists,
                         "dng": view.is_dng,
                     }
                 )
