@@ -357,7 +357,8 @@ def scene_dict(mesh: Mesh, textures: Mapping[str, object], camera: Camera,
 
 def render_reference(mesh: Mesh, textures: Mapping[str, object], camera: Camera,
                      light_intensity: float = 1.0, spp: int = 64, seed: int = 0,
-                     variant: str | None = None, r_min: float = R_MIN) -> np.ndarray:
+                     variant: str | None = None, r_min: float = R_MIN,
+                     alpha: bool = False) -> np.ndarray:
     """Render one view of the textured mesh lit by the point light at the camera center.
 
     Parameters
@@ -375,15 +376,23 @@ def render_reference(mesh: Mesh, textures: Mapping[str, object], camera: Camera,
         Samples per pixel (box filter) and the sampler seed.
     variant : str or None
         Mitsuba variant (default: the current one, else ``llvm_ad_rgb``).
+    r_min : float
+        Smallest roughness.
+    alpha : bool
+        Also return the pixel coverage (fraction of the pixel's footprint on the mesh).
 
     Returns
     -------
-    (H, W, 3) float32 linear radiance, the pixel average of I(x) of DESIGN section 3.
+    (H, W, 3) float32 linear radiance, the pixel average of I(x) of DESIGN section 3
+    ((H, W, 4) with the coverage last when ``alpha``).
     """
     if any(not np.isscalar(v) and np.asarray(v).ndim >= 2 for v in textures.values()) \
             and not mesh.has_uv:
         raise TextureError("render_reference: texture maps need a mesh with UVs")
     mi = register(variant)
-    scene = mi.load_dict(scene_dict(mesh, textures, camera, light_intensity, spp, r_min))
+    d = scene_dict(mesh, textures, camera, light_intensity, spp, r_min)
+    if alpha:
+        d["sensor"]["film"]["pixel_format"] = "rgba"
+    scene = mi.load_dict(d)
     img = mi.render(scene, seed=int(seed), spp=int(spp))
-    return np.array(img, dtype=np.float32)[:, :, :3]
+    return np.array(img, dtype=np.float32)[:, :, : 4 if alpha else 3]

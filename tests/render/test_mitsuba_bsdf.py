@@ -293,6 +293,14 @@ def test_texture_rows_follow_obj_convention(mi, mb):
     img = mb.render_reference(quad, {"diffuse": tex, "specular": 0.0, "roughness": 1.0}, cam,
                               light_intensity=4.0, spp=16, seed=0)
     assert img.shape == (H, W, 3) and img.dtype == np.float32
+    rgba = mb.render_reference(quad, {"diffuse": tex, "specular": 0.0, "roughness": 1.0}, cam,
+                               light_intensity=4.0, spp=16, seed=0, alpha=True)
+    assert rgba.shape == (H, W, 4)
+    np.testing.assert_allclose(rgba[:, :, :3], img, rtol=1e-5, atol=1e-7)
+    # coverage: the quad spans +-0.5 around the axis, the view +-2 tan(20 deg) = +-0.73
+    edge = 0.5 * (1 - 0.5 / (2 * np.tan(np.radians(20)))) * W  # first covered column
+    assert np.all(rgba[:, : int(edge), 3] == 0) and np.all(rgba[:, W - int(edge):, 3] == 0)
+    assert np.all(rgba[int(edge) + 1: H - int(edge) - 1, int(edge) + 1: W - int(edge) - 1, 3] == 1)
     top, bottom = img[: H // 2 - 2], img[H // 2 + 2:]
     assert top[..., 0].mean() > 5 * top[..., 2].mean()
     assert bottom[..., 2].mean() > 5 * bottom[..., 0].mean()

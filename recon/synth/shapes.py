@@ -1,0 +1,169 @@
+"""Procedural objects with fine geometric detail, for synthetic captures and benchmarks.
+
+Every object is a closed, manifold triangle mesh with outward normals, centered at the origin
+and inside the cube [-0.95, 0.95]^3 (so inside DESIGN's [-1, 1]^3 object frame):
+
+- ``blob``: a sphere deformed by low-frequency noise, with round bumps and dents and a few
+  grooves (narrow circular channels) - genus 0, detail at several scales.
+- ``torus``: a genus-1 ring with bumps, ridges around the tube and a spiral groove; its
+  inner rim gives self-occlusion edges in front of lit surfaces.
+- ``smooth``: the blob's low-frequency shape only (no bumps, no grooves).
+
+Shapes are functions of ``seed`` alone (numpy float64, no threads): bit-identical everywhere.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from recon.io.mesh import Mesh
+from recon.synth.noise import fbm
+
+OBJECT_KINDS = ("blob", "torus", "smooth")
+EXTENT = 0.95
+"""Largest absolute coordinate of a generated object."""
+
+
+# ---- base tessellations ----
+def icosphere(level: int) -> Mesh:
+    """Unit icosphere after ``level`` 4:1 subdivisions: 10 * 4**level + 2 vertices."""
+    if level < 0:
+        raise ValueError(f"icosphere level must be >= 0, got {level}")
+    t = (1.0 + 5.0**0.5) / 2.0
+    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+                  [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]],
+                 dtype=np.float64)
+    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9],
+                  [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2],
+                  [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
+                  [8, 6, 7], [9, 8, 1]], dtype=np.int64)
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    for _ in range(level):
+        edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        key = np.sort(edges, axis=1)
+        uniq, inv = np.unique(key, axis=0, return_inverse=True)
+        mid = v[uniq[:, 0]] + v[uniq[:, 1]]
+        mid /= np.linalg.norm(mid, axis=1, keepdims=True)
+        m = inv.reshape(3, -1).T + len(v)  # (F, 3): midpoints of edges 01, 12, 20
+        v = np.concatenate([v, mid])
+        a, b, c = f[:, 0], f[:, 1], f[:, 2]
+        m01, m12, m20 = m[:, 0], m[:, 1], m[:, 2]
+        f = np.concatenate([np.stack([a, m01, m20], 1), np.stack([b, m12, m01], 1),
+                            np.stack([c, m20, m12], 1), np.stack([m01, m12, m20], 1)])
+    return Mesh(v, f)
+
+
+def torus_grid(n_major: int, n_minor: int, R: float = 1.0, r: float = 0.4):
+    """A torus around the z axis as a closed grid.
+
+    Returns
+    -------
+    mesh : Mesh
+    phi, theta : (V,) float
+        Angle around the z axis and around the tube of every vertex.
+    """
+    if n_major < 3 or n_minor < 3:
+        raise ValueError("a torus grid needs at least 3 x 3 vertices")
+    phi = 2 * np.pi * np.arange(n_major) / n_major
+    theta = 2 * np.pi * np.arange(n_minor) / n_minor
+    P, T = np.meshgrid(phi, theta, indexing="ij")
+    pos = np.stack([(R + r * np.cos(T)) * np.cos(P), (R + r * np.cos(T)) * np.sin(P),
+                    r * np.sin(T)], -1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(n_major), np.arange(n_minor), indexing="ij")
+    a = i * n_minor + j
+    b = ((i + 1) % n_major) * n_minor + j
+    c = ((i + 1) % n_major) * n_minor + (j + 1) % n_minor
+    d = i * n_minor + (j + 1) % n_minor
+    f = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
+                        np.stack([a, c, d], -1).reshape(-1, 3)])
+    return Mesh(pos, f), P.reshape(-1), T.reshape(-1)
+
+
+# ---- detail fields ----
+def _random_dirs(rng: np.random.Generator, n: int) -> np.ndarray:
+    d = rng.normal(size=(n, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _bumps(dirs: np.ndarray, rng: np.random.Generator, n: int, size=(0.10, 0.22),
+           height=(0.025, 0.055)) -> np.ndarray:
+    """Sum of ``n`` Gaussian bumps (and dents) on the unit sphere of directions."""
+    centers = _random_dirs(rng, n)
+    sizes = rng.uniform(*size, n)
+    heights = rng.uniform(*height, n) * rng.choice([-1.0, 1.0, 1.0], n)
+    ang = np.arccos(np.clip(dirs @ centers.T, -1.0, 1.0))  # (V, n)
+    return (heights * np.exp(-0.5 * (ang / sizes) ** 2)).sum(axis=1)
+
+
+def _grooves(dirs: np.ndarray, rng: np.random.Generator, n: int, depth=0.022,
+             width=0.035) -> np.ndarray:
+    """``n`` circular grooves (small circles of the direction sphere), depth ``depth``."""
+    axes = _random_dirs(rng, n)
+    radii = rng.uniform(0.55, 1.35, n)  # angular radius of each circle
+    ang = np.arccos(np.clip(dirs @ axes.T, -1.0, 1.0))
+    return -(depth * np.exp(-(((ang - radii) / width) ** 2))).sum(axis=1)
+
+
+def _fit_extent(mesh: Mesh) -> Mesh:
+    lo, hi = mesh.bbox()
+    center = 0.5 * (lo + hi)
+    v = mesh.v_pos - center
+    v *= EXTENT / np.abs(v).max()
+    return Mesh(v, mesh.t_pos_idx)
+
+
+def blob(level: int = 6, seed: int = 0, detail: bool = True) -> Mesh:
+    """The ``blob`` (``detail=True``) or ``smooth`` object on an icosphere of ``level``."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xB10B]))
+    base = icosphere(level)
+    d = base.v_pos
+    radius = 1.0 + 0.16 * fbm(d * 0.9, 1.0, octaves=2, seed=seed + 7)
+    # an elongation so that views differ in silhouette, not only in texture
+    radius *= 1.0 + 0.12 * (d @ _random_dirs(rng, 1)[0]) ** 2
+    if detail:
+        radius += _bumps(d, rng, 14)
+        radius += _grooves(d, rng, 4)
+        radius += 0.006 * fbm(d, 9.0, octaves=2, seed=seed + 11)  # fine surface roughness
+    return _fit_extent(Mesh(d * radius[:, None], base.t_pos_idx))
+
+
+def torus(level: int = 6, seed: int = 0) -> Mesh:
+    """The genus-1 ``torus`` object with about as many faces as an icosphere of ``level``."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x7085]))
+    faces = 20 * 4**level
+    n_minor = max(8, int(round(np.sqrt(faces / 2 / 3.0))))
+    n_major = max(12, int(round(faces / 2 / n_minor)))
+    R, r = 1.0, 0.42
+    mesh, phi, theta = torus_grid(n_major, n_minor, R, r)
+    center = np.stack([R * np.cos(phi), R * np.sin(phi), np.zeros_like(phi)], -1)
+    normal = (mesh.v_pos - center) / r
+    disp = 0.05 * fbm(mesh.v_pos * 0.8, 1.0, octaves=2, seed=seed + 3)
+    # bumps: Gaussian in 3D distance to random surface points
+    k = 12
+    idx = rng.integers(0, len(phi), k)
+    size = rng.uniform(0.08, 0.16, k)
+    height = rng.uniform(0.02, 0.045, k) * rng.choice([-1.0, 1.0, 1.0], k)
+    dist2 = ((mesh.v_pos[:, None, :] - mesh.v_pos[idx][None]) ** 2).sum(-1)
+    disp += (height * np.exp(-0.5 * dist2 / size**2)).sum(1)
+    # ridges around the tube at a few angles phi, and a spiral groove along it
+    for phi0 in rng.uniform(0, 2 * np.pi, 3):
+        dphi = np.angle(np.exp(1j * (phi - phi0)))
+        disp += 0.018 * np.exp(-((dphi * R / 0.03) ** 2))
+    spiral = np.angle(np.exp(1j * (theta - 3.0 * phi)))
+    disp -= 0.02 * np.exp(-((spiral * r / 0.035) ** 2))
+    v = center + normal * (r + disp)[:, None]
+    # tilt the ring a little so that no view is exactly along its axis
+    a = rng.uniform(0.25, 0.45)
+    rot = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    return _fit_extent(Mesh(v @ rot.T, mesh.t_pos_idx))
+
+
+def make_object(kind: str, level: int = 6, seed: int = 0) -> Mesh:
+    """One of :data:`OBJECT_KINDS` (no UVs yet)."""
+    if kind == "blob":
+        return blob(level, seed, detail=True)
+    if kind == "smooth":
+        return blob(level, seed, detail=False)
+    if kind == "torus":
+        return torus(level, seed)
+    raise ValueError(f"unknown object kind {kind!r}; choose one of {OBJECT_KINDS}")
