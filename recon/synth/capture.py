@@ -230,8 +230,13 @@ def _add_noise(rgb: np.ndarray, sensor, rng: np.random.Generator) -> np.ndarray:
 
 
 # ---- the capture ----
-def make_capture(out_dir: str | os.PathLike, settings: SynthSettings) -> Path:
-    """Write a synthetic capture folder at ``out_dir`` (replaced atomically); return its path."""
+def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
+                 command: str | None = None) -> Path:
+    """Write a synthetic capture folder at ``out_dir`` (replaced atomically); return its path.
+
+    ``command`` (the command line that regenerates it) is recorded in gt/README.md and
+    gt/synth.json.
+    """
     from recon.render.mitsuba_bsdf import render_reference
     from recon.synth.sensor import SensorModel, exposure_value
 
@@ -294,6 +299,7 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings) -> Path:
         write_exr(tmp / "gt" / "roughness.exr", roughness)
         meta = {
             "generator": "recon.synth.capture.make_capture",
+            "command": command,
             "settings": dataclasses.asdict(s),
             "linear_scale": linear_scale,
             "exposure_reference": h_ref,
@@ -305,16 +311,17 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings) -> Path:
         with atomic_path(tmp / "gt" / "synth.json") as p:
             p.write_text(json.dumps(meta, indent=1))
         with atomic_path(tmp / "gt" / "README.md") as p:
-            p.write_text(_readme(s, linear_scale))
+            p.write_text(_readme(s, linear_scale, command))
     return out_dir
 
 
-def _readme(s: SynthSettings, linear_scale: float) -> str:
+def _readme(s: SynthSettings, linear_scale: float, command: str | None) -> str:
+    regen = f"\nRegenerate (bit-identical on the same machine): `{command}`\n" if command else ""
     return f"""# Ground truth of a synthetic capture (never read by the pipeline)
 
 Made by `recon.synth.capture.make_capture` (settings in `synth.json`), object `{s.object}`.
-
-- `mesh.obj`: the true mesh in the frame of `cameras.json`, with its UV atlas (OBJ, v up).
+{regen}
+- `mesh.obj`: the true mesh in the frame of `gt/cameras.json`, with its UV atlas (OBJ, v up).
 - `diffuse.exr` (RGB), `specular.exr` (1 channel), `roughness.exr` (1 channel): the true maps,
   linear float32, texel (i, j) at u = (j + 0.5)/W, v = 1 - (i + 0.5)/H (DESIGN section 2).
 - `cameras.json`: the true cameras; `light.intensity` is I_e for the linearized images.

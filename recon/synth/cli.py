@@ -58,8 +58,31 @@ def settings_from_args(args: argparse.Namespace) -> SynthSettings:
     return dataclasses.replace(base, **changes)
 
 
+def command_line(args: argparse.Namespace) -> str:
+    """The shortest command line that gives the same settings (recorded in gt/)."""
+    base = PRESETS[args.preset] if args.preset else SynthSettings()
+    s = settings_from_args(args)
+    opts = {"object": "--object", "n_views": "--views", "width": "--res", "height": "--height",
+            "fov": "--fov", "distance": "--distance", "format": "--format", "spp": "--spp",
+            "seed": "--seed", "light_intensity": "--light-intensity",
+            "exposure_variation": "--exposure-variation", "mesh_level": "--mesh-level",
+            "texture_size": "--texture-size"}
+    flags = {"write_cameras": "cameras", "write_masks": "masks", "write_gt_linear": "gt-linear",
+             "noise": "noise"}
+    parts = ["python -m recon synth", str(args.out_dir)]
+    if args.preset:
+        parts += ["--preset", args.preset]
+    for key, flag in opts.items():
+        if getattr(s, key) != getattr(base, key) or (key == "height" and s.width != base.width):
+            parts += [flag, str(getattr(s, key))]
+    for key, name in flags.items():
+        if getattr(s, key) != getattr(base, key):
+            parts.append(f"--{name}" if getattr(s, key) else f"--no-{name}")
+    return " ".join(parts)
+
+
 def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     log.info("settings: %s", settings)
-    make_capture(args.out_dir, settings)
+    make_capture(args.out_dir, settings, command=command_line(args))
     return 0

@@ -1,5 +1,7 @@
 """``python -m recon synth``: arguments map onto SynthSettings; user errors exit with a message."""
 
+import dataclasses
+import json
 import subprocess
 import sys
 
@@ -26,6 +28,12 @@ def test_main_writes_a_capture(tmp_path):
                "--mesh-level", "2", "--texture-size", "32", "--format", "exr", "--no-noise"])
     assert rc == 0
     assert len(load_cameras(tmp_path / "c" / "cameras.json")) == 2
+    meta = json.loads((tmp_path / "c" / "gt" / "synth.json").read_text())
+    # the recorded command line gives the same settings back
+    recorded = meta["command"].split()[5:]
+    again = settings_from_args(build_parser().parse_args(["synth", "o", *recorded]))
+    assert dataclasses.asdict(again) == {**meta["settings"], "view_z_range": again.view_z_range}
+    assert tuple(meta["settings"]["view_z_range"]) == again.view_z_range
 
 
 def test_user_error_exits_2_with_message(tmp_path):
