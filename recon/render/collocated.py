@@ -81,16 +81,20 @@ class RenderSettings:
         Roughness is clamped to [r_min, 1].
     variant : str or None
         Mitsuba variant (default: :func:`recon.mi.default_variant`, ``llvm_ad_rgb``).
+    profile : bool
+        Synchronize after each phase of a render and add its wall time (seconds) to
+        ``CollocatedRenderer.timings`` (slows rendering a little; for benchmarks).
     """
 
     spp: int = 4
     boundary: str = "edge"
     stratified: bool = True
-    edge_samples_per_pixel: float = 1.0
+    edge_samples_per_pixel: float = 0.25
     edge_samples: int | None = None
     edge_eps_px: float = 1e-3
     r_min: float = R_MIN
     variant: str | None = None
+    profile: bool = False
 
     def __post_init__(self):
         if int(self.spp) < 1:
@@ -172,6 +176,23 @@ class CollocatedRenderer:
         self._scene_params = None
         self._n_vertices = None
         self._projective = None
+        self.timings: dict[str, float] = {}
+        self._t_mark = 0.0
+
+    def _mark(self, phase: str | None, *evaluate) -> None:
+        """With ``settings.profile``: evaluate ``evaluate``, wait, and book the time since the
+        previous mark to ``phase`` (None starts the clock)."""
+        if not self.settings.profile:
+            return
+        import time
+
+        if evaluate:
+            self.dr.eval(*evaluate)
+        self.dr.sync_thread()
+        now = time.perf_counter()
+        if phase is not None:
+            self.timings[phase] = self.timings.get(phase, 0.0) + now - self._t_mark
+        self._t_mark = now
 
     # ------------------------------------------------------------------ inputs
     def _vertex_array(self, v_pos):
@@ -261,11 +282,11 @@ class CollocatedRenderer:
         return flat
 
     # ------------------------------------------------------------------ shading
-    def _trace(self, scene, o, d):
-        """Preliminary intersection of rays (o, d); returns (prim index, hit mask)."""
+    def _trace(self, scene, o, d, coherent: bool = True):
+        """Preliminary intersection of rays (o, d); returns (prim index, hit mask, distance)."""
         mi = self.mi
         ray = mi.Ray3f(o, d)
-        pi = scene.ray_intersect_preliminary(ray, coherent=True)
+        pi = scene.ray_intersect_preliminary(ray, coherent=coherent)
         return pi.prim_index, pi.is_valid(), pi.t
 
     def _shade(self, o, d, prim, valid, v_flat, n_flat, tex):
@@ -423,6 +444,7 @@ class CollocatedRenderer:
 
             return render_projective(self, v_pos, diffuse, specular, roughness, cameras,
                                      light_intensity, seed)
+        self._mark(None)
         v_flat, nv = self._vertex_array(v_pos)
         tex = {
             "diffuse": self._texture(diffuse, "diffuse", (3,)),
@@ -431,28 +453,32 @@ class CollocatedRenderer:
         }
         tex = {k: (flat, dr.opaque(mi.UInt32, H), dr.opaque(mi.UInt32, W), C)
                for k, (flat, H, W, C) in tex.items()}
+        self._mark("inputs", v_flat, *(t[0] for t in tex.values()))
         scene = self._update_scene(v_flat, nv)
+        self._mark("bvh")
         n_flat = self._vertex_normals(v_flat, nv)
         cam_table = self._camera_table(cameras)
+        self._mark("normals", n_flat, cam_table)
         B = len(cameras)
         spp = int(self.settings.spp)
         seed_o = dr.opaque(mi.UInt32, np.uint32(seed & 0xFFFFFFFF))
         # ---- Interior: MC over pixel footprints, AD through the integrand
         o, d = self._primary_rays(cam_table, B, w, h, spp, seed_o)
         prim, valid, _ = self._trace(scene, o, d)
-        dr.eval(prim, valid)
+        dr.eval(prim, valid, o, d)
+        self._mark("primary_trace")
         L = self._shade(o, d, prim, valid, v_flat, n_flat, tex)
         inv = dr.opaque(mi.Float, float(light_intensity) / spp)
         flat = dr.zeros(mi.Float, B * h * w * 3)
         pix3 = (dr.arange(mi.UInt32, B * h * w * spp) // dr.opaque(mi.UInt32, spp)) * 3
         for c, Lc in enumerate((L.x, L.y, L.z)):
             dr.scatter_reduce(dr.ReduceOp.Add, flat, Lc * inv, pix3 + c)
+        self._mark("primary_shade", flat)
         # ---- Boundary: edge sampling (primal zero, derivative = the silhouette term)
         if self.settings.boundary == "edge" and dr.grad_enabled(v_flat):
-            delta = self._boundary_term(scene, v_flat, n_flat, tex, cameras, cam_table,
-                                        float(light_intensity), seed, B, h, w)
-            if delta is not None:
-                flat = flat + delta
+            self._boundary_term(flat, scene, v_flat, n_flat, tex, cameras, cam_table,
+                                float(light_intensity), seed, B, h, w)
+            self._mark("edge_rays", flat)
         return mi.TensorXf(flat, shape=(B, h, w, 3))
 
     def render_torch(self, v_pos, diffuse, specular, roughness, cameras: Sequence[Camera],
@@ -491,42 +517,60 @@ class CollocatedRenderer:
                                     *tensors)
 
     # ------------------------------------------------------------------ boundary
-    def _boundary_term(self, scene, v_flat, n_flat, tex, cameras, cam_table, light_intensity,
-                       seed, B, h, w):
+    def _boundary_term(self, image, scene, v_flat, n_flat, tex, cameras, cam_table,
+                       light_intensity, seed, B, h, w):
+        """Scatter-add the edge-sampled boundary term (primal zero) into ``image`` (flat)."""
         dr, mi = self.dr, self.mi
         v_np = dr.detach(v_flat).numpy().reshape(-1, 3).astype(np.float64)
         seg = silhouette_segments(v_np, self.t_pos_idx, self.topology, cameras)
+        self._mark("silhouettes")
         counts = np.array([self.settings.edge_count(c.width, c.height) for c in cameras])
         counts = np.where(seg.total_length > 0, counts, 0)
         M = int(counts.sum())
         if M == 0 or len(seg) == 0:
-            return None
-        rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0xED9E])
-        # Per view, pick segments proportionally to their length (segments come grouped by
-        # view), then a uniform point on the segment.
-        s_view = np.repeat(np.arange(B), counts)
-        cum = np.cumsum(seg.length)
+            return
+        # Per view, one stratified variable over the concatenated silhouette curve (segments
+        # come grouped by view): sample j of n lies uniformly in [j, j + 1) * L / n. Each point
+        # is uniform over the curve length (unbiased), strata lower the variance, and
+        # consecutive samples are neighbours on the curve (coherent rays). Generated in drjit.
         views = np.arange(B)
         first = np.searchsorted(seg.view, views, side="left")
-        last = np.searchsorted(seg.view, views, side="right") - 1
-        before = np.where(first > 0, cum[np.maximum(first - 1, 0)], 0.0)
-        u = before[s_view] + rng.random(M) * seg.total_length[s_view]
-        k = np.clip(np.searchsorted(cum, u, side="right"), first[s_view], last[s_view])
-        t = rng.random(M)
-        xy = seg.a[k] + t[:, None] * (seg.b[k] - seg.a[k])
-        weight = (seg.total_length[s_view] / counts[s_view]) * light_intensity
-        return self._boundary_from_samples(scene, v_flat, n_flat, tex, cam_table, s_view,
-                                           seg.v0[k], seg.v1[k], xy, weight, B, h, w)
+        last = np.maximum(np.searchsorted(seg.view, views, side="right") - 1, first)
+        before = np.concatenate([[0.0], np.cumsum(seg.length)])[first]
+        cum_local = np.cumsum(seg.length) - before[seg.view]  # within each view
+        start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        step = np.where(counts > 0, seg.total_length / np.maximum(counts, 1), 0.0)
+        f32, u32 = (lambda a: mi.Float(np.asarray(a, np.float32))), \
+            (lambda a: mi.UInt32(np.asarray(a, np.uint32)))
+        s_cum, s_len = f32(cum_local), f32(seg.length)
+        j = dr.arange(mi.UInt32, M)
+        view = _search(dr, mi, u32(start[1:]), j, B - 1) if B > 1 else dr.zeros(
+            mi.UInt32, M)
+        jl = j - dr.gather(mi.UInt32, u32(start), view)
+        xi = mi.sample_tea_float32(j, dr.opaque(mi.UInt32, (int(seed) * 2654435761 + 0xED9E)
+                                                & 0xFFFFFFFF), 4)
+        u = (mi.Float(jl) + xi) * dr.gather(mi.Float, f32(step), view)
+        lo = dr.gather(mi.UInt32, u32(first), view)
+        hi = dr.gather(mi.UInt32, u32(last), view)
+        k = _search_range(dr, mi, s_cum, u, lo, hi, int(len(seg)).bit_length())
+        length = dr.gather(mi.Float, s_len, k)
+        t = dr.clip((u - (dr.gather(mi.Float, s_cum, k) - length)) / dr.maximum(length, 1e-30),
+                    0.0, 1.0)
+        ax, ay = dr.gather(mi.Float, f32(seg.a[:, 0]), k), dr.gather(mi.Float, f32(seg.a[:, 1]), k)
+        bx, by = dr.gather(mi.Float, f32(seg.b[:, 0]), k), dr.gather(mi.Float, f32(seg.b[:, 1]), k)
+        x = dr.fma(t, bx - ax, ax)
+        y = dr.fma(t, by - ay, ay)
+        vi0 = dr.gather(mi.UInt32, u32(seg.v0), k)
+        vi1 = dr.gather(mi.UInt32, u32(seg.v1), k)
+        weight = dr.gather(mi.Float, f32(step * light_intensity), view)
+        dr.eval(view, vi0, vi1, x, y, weight)
+        self._mark("edge_sampling")
+        self._boundary_from_samples(image, scene, v_flat, n_flat, tex, cam_table, view, vi0, vi1,
+                                    x, y, weight, B, h, w)
 
-    def _boundary_from_samples(self, scene, v_flat, n_flat, tex, cam_table, s_view, i0, i1, xy,
-                               weight, B, h, w):
+    def _boundary_from_samples(self, image, scene, v_flat, n_flat, tex, cam_table, view, vi0,
+                               vi1, x, y, wgt, B, h, w):
         dr, mi = self.dr, self.mi
-        view = mi.UInt32(s_view.astype(np.uint32))
-        vi0 = mi.UInt32(i0.astype(np.uint32))
-        vi1 = mi.UInt32(i1.astype(np.uint32))
-        x = mi.Float(xy[:, 0].astype(np.float32))
-        y = mi.Float(xy[:, 1].astype(np.float32))
-        wgt = mi.Float(weight.astype(np.float32))
         base = view * _CAM_STRIDE
         g = [dr.gather(mi.Float, cam_table, base + k) for k in range(_CAM_STRIDE)]
         Kinv = g[0:9]
@@ -558,13 +602,30 @@ class CollocatedRenderer:
             vd = dr.detach(v_flat)
             nd = dr.detach(n_flat)
             tex_d = {k: (dr.detach(v[0]),) + tuple(v[1:]) for k, v in tex.items()}
-            res = []
-            for sgn in (-1.0, 1.0):
-                o, dvec = self._rays_through(cam_table, view, x + sgn * eps * nx, y + sgn * eps * ny)
-                prim, valid, thit = self._trace(scene, o, dvec)
-                Ls = self._shade(o, dvec, prim, valid, vd, nd, tex_d)
-                res.append((Ls, valid, thit))
-            (Lm, vm, tm), (Lp, vp, tp) = res
+            # One wavefront of 2M rays: lane 2k is sample k offset by -eps n, lane 2k + 1 by
+            # +eps n (neighbouring lanes, coherent rays).
+            M = dr.width(x)
+            dr.eval(nx, ny)
+            lane = dr.arange(mi.UInt32, 2 * M)
+            sid = lane >> 1
+            off = dr.select((lane & 1) == 1, eps, -eps)
+            sx = dr.gather(mi.Float, x, sid) + off * dr.gather(mi.Float, nx, sid)
+            sy = dr.gather(mi.Float, y, sid) + off * dr.gather(mi.Float, ny, sid)
+            o, dvec = self._rays_through(cam_table, dr.gather(mi.UInt32, view, sid), sx, sy)
+            self._mark("edge_setup")
+            prim, valid, thit = self._trace(scene, o, dvec)
+            dr.eval(prim, valid, thit)
+            self._mark("edge_trace")
+            Ls = self._shade(o, dvec, prim, valid, vd, nd, tex_d)
+            dr.eval(Ls)
+            self._mark("edge_shade")
+            even = dr.arange(mi.UInt32, M) * 2
+            Lm = dr.gather(mi.Color3f, Ls, even)
+            Lp = dr.gather(mi.Color3f, Ls, even + 1)
+            vm = dr.gather(mi.Bool, valid, even)
+            vp = dr.gather(mi.Bool, valid, even + 1)
+            tm = dr.gather(mi.Float, thit, even)
+            tp = dr.gather(mi.Float, thit, even + 1)
             # Depth (along the unit ray) of the edge point under (x, y): closest point of the
             # camera ray and the edge line, in camera coordinates.
             r = mi.Vector3f(Kinv[0] * x + Kinv[1] * y + Kinv[2], Kinv[3] * x + Kinv[4] * y + Kinv[5],
@@ -587,10 +648,9 @@ class CollocatedRenderer:
             py = mi.UInt32(dr.clip(mi.Int32(dr.floor(y)), 0, h - 1))
             pix = (view * h + py) * w + px
             dr.eval(dI, pix, inside)
-        delta = dr.zeros(mi.Float, B * h * w * 3)
         for c, dIc in enumerate((dI.x, dI.y, dI.z)):
-            dr.scatter_reduce(dr.ReduceOp.Add, delta, dIc * vel, pix * 3 + c, inside)
-        return delta
+            dr.scatter_reduce(dr.ReduceOp.Add, image, dIc * vel, pix * 3 + c, inside,
+                              mode=dr.ReduceMode.Direct)
 
 
 # ---------------------------------------------------------------------- helpers
@@ -599,6 +659,31 @@ def _safe_normalize(dr, v):
     n2 = dr.squared_norm(v)
     ok = n2 > 1e-36
     return v * dr.select(ok, dr.rsqrt(dr.select(ok, n2, 1.0)), 0.0)
+
+
+def _search_range(dr, mi, cum, u, lo, hi, iterations: int):
+    """Per lane, the first index k in [lo, hi] with cum[k] > u (hi if none); cum ascending.
+
+    ``iterations`` must be >= log2(hi - lo + 1) (e.g. the bit length of the array size).
+    """
+    for _ in range(iterations):
+        active = lo < hi
+        mid = (lo + hi) >> 1
+        go_right = active & (dr.gather(mi.Float, cum, mid, active) <= u)
+        lo, hi = dr.select(go_right, mid + 1, lo), dr.select(active & ~go_right, mid, hi)
+    return lo
+
+
+def _search(dr, mi, starts, j, n: int):
+    """Per lane, how many of the n entries of the ascending UInt32 array ``starts`` are <= j."""
+    lo = dr.zeros(mi.UInt32, dr.width(j))
+    hi = lo + n
+    for _ in range(max(int(n).bit_length(), 1)):
+        active = lo < hi
+        mid = (lo + hi) >> 1
+        go_right = active & (dr.gather(mi.UInt32, starts, mid, active) <= j)
+        lo, hi = dr.select(go_right, mid + 1, lo), dr.select(active & ~go_right, mid, hi)
+    return lo
 
 
 def _bilinear(dr, mi, texture, uv, active):
