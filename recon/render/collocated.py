@@ -15,15 +15,22 @@ Derivatives (the paper's eq. 4-5, Reynolds transport):
   the differentiable triangle (Moller-Trumbore on the fixed ray), so it slides along the ray as
   the triangle moves, and so do the barycentrics, the normal and the UV.
 - boundary: edge sampling (Li et al. 2018). Silhouette edges are found per view
-  (:mod:`recon.render.edges`), sampled proportionally to their clipped image length, and at each
-  sample the jump dI = I(x - eps n) - I(x + eps n) across the edge is evaluated with two rays.
-  A term whose primal is zero and whose derivative is ``dI * (n . dx/dtheta) * L / M`` is
-  scattered into the pixel the sample lands in. Samples whose edge point is hidden behind other
-  geometry (both side rays stop well before the edge) carry nothing.
+  (:mod:`recon.render.edges`: edges between a front- and a back-facing face, plus open and
+  non-manifold edges, clipped to the near plane and the image). Per view, one stratified
+  variable runs along the concatenated silhouette curve, so each sample is uniform over the
+  curve length (unbiased) and neighbouring samples are neighbours on the curve (coherent rays,
+  low variance). At each sample the jump dI = I(x - eps n) - I(x + eps n) across the edge is
+  evaluated with two rays; the normal velocity of the projected edge at the (fixed) sample
+  point is n . dx/dtheta = -(dl/dtheta . x~) / |(l0, l1)|, with l = K^-T (X0 x X1) the image
+  line through the edge's camera-space end points (valid also for edges clipped by the near
+  plane). A term whose primal is zero and whose derivative is ``dI * (n . dx/dtheta) * L / M``
+  is scattered into the pixel the sample lands in (eq. 5). Samples whose edge point is hidden
+  behind other geometry (both side rays stop well before the edge) carry nothing.
 
-Everything runs as drjit wavefronts (no Python loops over pixels or edges); scalars that change
-between calls (seed, light intensity, texture sizes) enter the kernels as opaque values so the
-compiled kernels are reused.
+Everything runs as drjit wavefronts (no Python loops over pixels or edges). Values that change
+between calls (seed, light intensity, cameras, texture sizes) enter the kernels as opaque
+values, so compiled kernels are reused across iterations; the image size and spp are literals
+(kernels compile once per resolution).
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ from typing import Sequence
 
 import numpy as np
 
+from recon.brdf import R_MIN
 from recon.io.cameras import Camera
 from recon.mi import load_variant
 from recon.render.edges import EdgeTopology, edge_topology, silhouette_segments
@@ -41,9 +49,6 @@ from recon.render.edges import EdgeTopology, edge_topology, silhouette_segments
 log = logging.getLogger(__name__)
 
 __all__ = ["RenderSettings", "CollocatedRenderer", "RenderError", "R_MIN"]
-
-R_MIN = 0.02
-"""Smallest perceptual roughness (DESIGN section 3)."""
 
 BOUNDARY_MODES = ("edge", "none", "projective")
 
@@ -234,7 +239,18 @@ class CollocatedRenderer:
             flat = mi.Float(arr.reshape(-1))
         return flat, int(shape[0]), int(shape[1]), int(shape[2])
 
+    def _cam_values(self, cam_table, view):
+        """The 24 per-view camera values for each lane: gathers, or broadcast scalars for a
+        single view (a list of opaque scalars)."""
+        dr, mi = self.dr, self.mi
+        if isinstance(cam_table, list):
+            return cam_table
+        base = view * _CAM_STRIDE
+        return [dr.gather(mi.Float, cam_table, base + k) for k in range(_CAM_STRIDE)]
+
     def _camera_table(self, cameras: Sequence[Camera]):
+        """Per-view Kinv, R_w2c, t_w2c, center (24 floats each): a flat mi.Float for several
+        views, a list of 24 opaque scalars for one."""
         rows = []
         for cam in cameras:
             if not isinstance(cam, Camera):
@@ -243,6 +259,8 @@ class CollocatedRenderer:
             R = cam.world_to_camera[:3, :3]
             t = cam.world_to_camera[:3, 3]
             rows.append(np.concatenate([Kinv.ravel(), R.ravel(), t, cam.center]))
+        if len(rows) == 1:
+            return [self.dr.opaque(self.mi.Float, float(x)) for x in rows[0]]
         return self.mi.Float(np.concatenate(rows).astype(np.float32))
 
     # ------------------------------------------------------------------ scene
@@ -346,26 +364,23 @@ class CollocatedRenderer:
         dr, mi = self.dr, self.mi
         n = n_views * width * height * spp
         idx = dr.arange(mi.UInt32, n)
-        spp_o = dr.opaque(mi.UInt32, spp)
-        w_o = dr.opaque(mi.UInt32, width)
-        hw_o = dr.opaque(mi.UInt32, width * height)
-        pix = idx // spp_o
-        view = pix // hw_o
-        p = pix - view * hw_o
-        row = p // w_o
-        col = p - row * w_o
+        # Divisors are literals (LLVM turns the divisions into multiplications); the kernels
+        # are compiled again only when the image size or spp changes.
+        pix = idx // spp
+        view = pix // (width * height)
+        p = pix - view * (width * height)
+        row = p // width
+        col = p - row * width
         ux = mi.sample_tea_float32(idx, seed, 4)
         uy = mi.sample_tea_float32(idx, seed + 0x9E3779B9, 4)
         k = int(np.sqrt(spp) + 0.5)
         if self.settings.stratified and k * k == spp and spp > 1:
             # Jittered k x k grid over the pixel: each sample is still uniform over the pixel.
-            s = idx - pix * spp_o
-            k_o = dr.opaque(mi.UInt32, k)
-            sy = s // k_o
-            sx = s - sy * k_o
-            inv_k = dr.opaque(mi.Float, 1.0 / k)
-            ux = (mi.Float(sx) + ux) * inv_k
-            uy = (mi.Float(sy) + uy) * inv_k
+            s = idx - pix * spp
+            sy = s // k
+            sx = s - sy * k
+            ux = (mi.Float(sx) + ux) * (1.0 / k)
+            uy = (mi.Float(sy) + uy) * (1.0 / k)
         x = mi.Float(col) + ux
         yv = mi.Float(row) + uy
         o, d = self._rays_through(cam_table, view, x, yv)
@@ -374,8 +389,7 @@ class CollocatedRenderer:
     def _rays_through(self, cam_table, view, x, y):
         """World rays (origin, unit direction) through image points (x, y) of ``view``."""
         dr, mi = self.dr, self.mi
-        base = view * _CAM_STRIDE
-        g = [dr.gather(mi.Float, cam_table, base + k) for k in range(_CAM_STRIDE)]
+        g = self._cam_values(cam_table, view)
         Kinv = g[0:9]
         R = g[9:18]
         c = mi.Point3f(g[21], g[22], g[23])
@@ -420,7 +434,7 @@ class CollocatedRenderer:
         groups: dict[tuple[int, int], list[int]] = {}
         for i, cam in enumerate(cameras):
             groups.setdefault((int(cam.height), int(cam.width)), []).append(i)
-        for g, (shape, ids) in enumerate(groups.items()):
+        for g, ids in enumerate(groups.values()):
             batch = self.render_batch(v_pos, diffuse, specular, roughness,
                                       [cameras[i] for i in ids], light_intensity, seed + 7919 * g)
             for k, i in enumerate(ids):
@@ -458,22 +472,23 @@ class CollocatedRenderer:
         self._mark("bvh")
         n_flat = self._vertex_normals(v_flat, nv)
         cam_table = self._camera_table(cameras)
-        self._mark("normals", n_flat, cam_table)
+        self._mark("normals", n_flat)
         B = len(cameras)
         spp = int(self.settings.spp)
         seed_o = dr.opaque(mi.UInt32, np.uint32(seed & 0xFFFFFFFF))
         # ---- Interior: MC over pixel footprints, AD through the integrand
         o, d = self._primary_rays(cam_table, B, w, h, spp, seed_o)
         prim, valid, _ = self._trace(scene, o, d)
-        dr.eval(prim, valid, o, d)
-        self._mark("primary_trace")
         L = self._shade(o, d, prim, valid, v_flat, n_flat, tex)
         inv = dr.opaque(mi.Float, float(light_intensity) / spp)
         flat = dr.zeros(mi.Float, B * h * w * 3)
-        pix3 = (dr.arange(mi.UInt32, B * h * w * spp) // dr.opaque(mi.UInt32, spp)) * 3
+        pix3 = (dr.arange(mi.UInt32, B * h * w * spp) // spp) * 3
         for c, Lc in enumerate((L.x, L.y, L.z)):
             dr.scatter_reduce(dr.ReduceOp.Add, flat, Lc * inv, pix3 + c)
-        self._mark("primary_shade", flat)
+        # One kernel traces, shades and accumulates; it also stores the rays and hits so the
+        # backward pass reads them instead of tracing again.
+        dr.eval(flat, prim, valid, o, d)
+        self._mark("primary")
         # ---- Boundary: edge sampling (primal zero, derivative = the silhouette term)
         if self.settings.boundary == "edge" and dr.grad_enabled(v_flat):
             self._boundary_term(flat, scene, v_flat, n_flat, tex, cameras, cam_table,
@@ -540,8 +555,12 @@ class CollocatedRenderer:
         cum_local = np.cumsum(seg.length) - before[seg.view]  # within each view
         start = np.concatenate([[0], np.cumsum(counts)[:-1]])
         step = np.where(counts > 0, seg.total_length / np.maximum(counts, 1), 0.0)
-        f32, u32 = (lambda a: mi.Float(np.asarray(a, np.float32))), \
-            (lambda a: mi.UInt32(np.asarray(a, np.uint32)))
+        def f32(a):
+            return mi.Float(np.asarray(a, np.float32))
+
+        def u32(a):
+            return mi.UInt32(np.asarray(a, np.uint32))
+
         s_cum, s_len = f32(cum_local), f32(seg.length)
         j = dr.arange(mi.UInt32, M)
         view = _search(dr, mi, u32(start[1:]), j, B - 1) if B > 1 else dr.zeros(
@@ -571,8 +590,7 @@ class CollocatedRenderer:
     def _boundary_from_samples(self, image, scene, v_flat, n_flat, tex, cam_table, view, vi0,
                                vi1, x, y, wgt, B, h, w):
         dr, mi = self.dr, self.mi
-        base = view * _CAM_STRIDE
-        g = [dr.gather(mi.Float, cam_table, base + k) for k in range(_CAM_STRIDE)]
+        g = self._cam_values(cam_table, view)
         Kinv = g[0:9]
         R = g[9:18]
         tr = mi.Vector3f(g[18], g[19], g[20])

@@ -16,7 +16,7 @@ def test_topology_of_a_closed_sphere():
     assert np.all(topo.face_b >= 0) and not topo.always.any() and topo.consistent.all()
     assert np.all(topo.edges[:, 0] < topo.edges[:, 1])
     # each edge's two faces both contain it
-    for e, fa, fb in zip(topo.edges[:20], topo.face_a[:20], topo.face_b[:20]):
+    for e, fa, fb in zip(topo.edges[:20], topo.face_a[:20], topo.face_b[:20], strict=True):
         assert set(e) <= set(f[fa]) and set(e) <= set(f[fb]) and fa != fb
 
 
@@ -56,7 +56,7 @@ def test_flipped_face_does_not_change_the_silhouette():
     topo = edge_topology(g)
     assert (~topo.consistent).sum() == 3
     seg = silhouette_segments(v, g, topo, [cam])
-    key = lambda s: sorted(zip(np.minimum(s.v0, s.v1), np.maximum(s.v0, s.v1)))  # noqa: E731
+    key = lambda s: sorted(zip(np.minimum(s.v0, s.v1), np.maximum(s.v0, s.v1), strict=True))  # noqa: E731
     assert key(seg) == key(ref)
 
 
@@ -74,13 +74,13 @@ def test_clipping_to_the_image_matches_dense_sampling():
     assert np.all(z > 0)
     s = (np.arange(4000) + 0.5) / 4000
     inside_len = {}
-    pairs = set(zip(seg.v0, seg.v1))
+    pairs = set(zip(seg.v0, seg.v1, strict=True))
     for a, b in pairs:
         p = xy[a][None, :] + s[:, None] * (xy[b] - xy[a])[None, :]
         ok = (p[:, 0] >= 0) & (p[:, 0] <= 64) & (p[:, 1] >= 0) & (p[:, 1] <= 48)
         inside_len[(a, b)] = ok.mean() * np.linalg.norm(xy[b] - xy[a])
     clipped = 0
-    for a, b, length in zip(seg.v0, seg.v1, seg.length):
+    for a, b, length in zip(seg.v0, seg.v1, seg.length, strict=True):
         full = np.linalg.norm(xy[b] - xy[a])
         assert abs(length - inside_len[(a, b)]) < 2e-3 * full + 1e-9
         clipped += length < 0.99 * full
