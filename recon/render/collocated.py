@@ -632,6 +632,7 @@ class CollocatedRenderer:
             o, dvec = self._rays_through(cam_table, dr.gather(mi.UInt32, view, sid), sx, sy)
             self._mark("edge_setup")
             prim, valid, thit = self._trace(scene, o, dvec)
+            thit = dr.select(valid, thit, dr.inf)
             dr.eval(prim, valid, thit)
             self._mark("edge_trace")
             Ls = self._shade(o, dvec, prim, valid, vd, nd, tex_d)
@@ -640,9 +641,7 @@ class CollocatedRenderer:
             even = dr.arange(mi.UInt32, M) * 2
             Lm = dr.gather(mi.Color3f, Ls, even)
             Lp = dr.gather(mi.Color3f, Ls, even + 1)
-            vm = dr.gather(mi.Bool, valid, even)
-            vp = dr.gather(mi.Bool, valid, even + 1)
-            tm = dr.gather(mi.Float, thit, even)
+            tm = dr.gather(mi.Float, thit, even)  # inf where the ray escaped
             tp = dr.gather(mi.Float, thit, even + 1)
             # Depth (along the unit ray) of the edge point under (x, y): closest point of the
             # camera ray and the edge line, in camera coordinates.
@@ -659,7 +658,7 @@ class CollocatedRenderer:
             s_r = dr.select(dr.abs(den) > 1e-30, (d_ * c_ - b_ * e_) / den, d_ / a_)
             t_edge = s_r * dr.norm(r)
             tol = 1e-3 * t_edge
-            hidden = vm & vp & (tm < t_edge - tol) & (tp < t_edge - tol)
+            hidden = (tm < t_edge - tol) & (tp < t_edge - tol)
             dI = dr.select(hidden, 0.0, Lm - Lp) * wgt
             inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
             px = mi.UInt32(dr.clip(mi.Int32(dr.floor(x)), 0, w - 1))
