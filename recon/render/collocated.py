@@ -320,8 +320,8 @@ class CollocatedRenderer:
         e1, e2 = p1 - p0, p2 - p0
         pvec = dr.cross(d, e2)
         det = dr.dot(e1, pvec)
-        fn_len = dr.norm(dr.cross(e1, e2))
-        ok = valid & (dr.abs(det) > 1e-7 * fn_len)  # not a grazing / degenerate hit
+        # not a grazing / degenerate hit: |det| > 1e-7 |e1| |e2| (squared, no roots)
+        ok = valid & (det * det > 1e-14 * dr.squared_norm(e1) * dr.squared_norm(e2))
         inv_det = dr.select(ok, dr.rcp(dr.select(ok, det, 1.0)), 0.0)
         tvec = o - p0
         b1 = dr.dot(tvec, pvec) * inv_det
@@ -465,8 +465,13 @@ class CollocatedRenderer:
             "specular": self._texture(specular, "specular", (1, 3)),
             "roughness": self._texture(roughness, "roughness", (1,)),
         }
-        tex = {k: (flat, dr.opaque(mi.UInt32, H), dr.opaque(mi.UInt32, W), C)
-               for k, (flat, H, W, C) in tex.items()}
+        # Maps of one size share their opaque sizes, so their (identical) bilinear footprint
+        # arithmetic is computed once per lane.
+        sizes = {}
+        for _, H, W, _ in tex.values():
+            if (H, W) not in sizes:
+                sizes[(H, W)] = (dr.opaque(mi.UInt32, H), dr.opaque(mi.UInt32, W))
+        tex = {k: (flat, *sizes[(H, W)], C) for k, (flat, H, W, C) in tex.items()}
         self._mark("inputs", v_flat, *(t[0] for t in tex.values()))
         scene = self._update_scene(v_flat, nv)
         self._mark("bvh")
