@@ -278,8 +278,13 @@ class CollocatedRenderer:
             self._scene_params = mi.traverse(self._scene)
             self._n_vertices = n_vertices
         else:
-            self._scene_params["mesh.vertex_positions"] = dr.detach(v_flat)
-            self._scene_params.update()
+            new = dr.detach(v_flat)
+            old = self._scene_params["mesh.vertex_positions"]
+            # The BVH rebuild is the largest fixed cost of a call: skip it when the positions
+            # did not change (e.g. several view batches rendered per optimizer step).
+            if not bool(dr.all(old == new, axis=None)):
+                self._scene_params["mesh.vertex_positions"] = new
+                self._scene_params.update()
         return self._scene
 
     def _vertex_normals(self, v_flat, n_vertices: int):
