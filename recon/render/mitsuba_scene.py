@@ -5,9 +5,14 @@ Mitsuba's own integrators: the ``recon_svbrdf`` plugin (:mod:`recon.render.mitsu
 a point light moved to each camera center, a box-filtered perspective sensor per view, and
 the mesh's shading normals set to the renderer's differentiable area-weighted vertex normals
 (so gradients through normals match). With ``integrator="direct_projective"`` it gives
-Mitsuba's unbiased projective-sampling gradients (``RenderSettings(boundary="projective")``
-routes here); with ``"direct"`` the interior term only. It is slow and exists to check and
-benchmark the renderer against.
+Mitsuba's projective-sampling gradients (``RenderSettings(boundary="projective")`` routes
+here); with ``"direct"`` the interior term only. It is slow and exists to check and benchmark
+the renderer against.
+
+Caveat (measured with Mitsuba 3.9.1): vertices are split where a position has several UVs,
+which gives Mitsuba's mesh open edges along UV seams, and ``direct_projective`` is biased
+there (20-60 % off finite differences on a 16 x 8 UV sphere); it is also a few percent off on
+coarse smooth-shaded meshes without seams. Compare on seamless, fine meshes.
 """
 
 from __future__ import annotations
@@ -80,7 +85,7 @@ class MitsubaScene:
         mp = mi.traverse(mesh)
         mp["faces"] = mi.UInt32(self._faces.reshape(-1))
         mp["vertex_texcoords"] = mi.Float(self._uv.reshape(-1))
-        mp["vertex_positions"] = dr_zeros(mi, 3 * self.n_split)
+        mp["vertex_positions"] = self.dr.zeros(mi.Float, 3 * self.n_split)
         mp.update()
         self._scene = mi.load_dict({
             "type": "scene",
@@ -129,12 +134,6 @@ class MitsubaScene:
         h, w = int(cameras[0].height), int(cameras[0].width)
         flat = dr.concat([im.array for im in images]) if len(images) > 1 else images[0].array
         return mi.TensorXf(flat, shape=(len(images), h, w, 3))
-
-
-def dr_zeros(mi, n):
-    import drjit as dr
-
-    return dr.zeros(mi.Float, n)
 
 
 def _as_tensor(mi, x):
