@@ -142,7 +142,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--res", type=int, default=512)
     ap.add_argument("--spp", type=int, default=4)
-    ap.add_argument("--repeat", type=int, default=5, help="timed runs per method (after warm-up)")
+    ap.add_argument("--repeat", type=int, default=7, help="timed runs per method (after warm-up)")
     ap.add_argument("--grad-runs", type=int, default=4, help="gradient runs per method for the error")
     ap.add_argument("--fd-spp", type=int, default=256)
     ap.add_argument("--edge-spp", type=float, default=None,
