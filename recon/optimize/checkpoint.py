@@ -53,8 +53,11 @@ def fingerprint(settings_dict: dict, files: list) -> str:
     h = hashlib.blake2b(digest_size=16)
     h.update(json.dumps(s, sort_keys=True, default=str).encode())
     for f in files:
+        if f is None:
+            h.update(b"<none>")
+            continue
         h.update(str(Path(f).name).encode())
-        h.update(file_digest(f).encode() if f is not None and Path(f).is_file() else b"-")
+        h.update(file_digest(f).encode() if Path(f).is_file() else b"-")
     return h.hexdigest()
 
 

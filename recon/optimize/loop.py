@@ -55,6 +55,7 @@ class _Stage:
     index: int
     settings: StageSettings
     h: float  # absolute target edge length
+    bbox_scale: float  # longest side of the initial mesh's bounding box
     mesh: Mesh  # connectivity + UVs; v_pos = accepted positions
     v_init: np.ndarray  # positions at the start of the stage (the guard's baseline)
     covered: np.ndarray  # (T, T) bool, texels inside the charts
@@ -124,7 +125,6 @@ def _build_stage(index, stage_settings, h, mesh, v_init, covered, map_values, se
                  opt_state=None, geom_raw=None, map_raw=None) -> _Stage:
     """Set up a stage from its mesh and map values (or, on resume, the saved raw tensors)."""
     topo = reg.MeshTopology.from_faces(mesh.t_pos_idx, len(mesh.v_pos))
-    scale_lr = stage_settings.lr_scale
     ls = None
     if settings.optimizer == "largesteps":
         ls = LargeSteps(mesh.t_pos_idx, len(mesh.v_pos), settings.largesteps_lambda)
@@ -137,12 +137,14 @@ def _build_stage(index, stage_settings, h, mesh, v_init, covered, map_values, se
     for k in MAP_NAMES:
         raw = map_raw[k].clone() if map_raw is not None else p[k].raw(map_values[k])
         maps[k] = raw.to(torch.float32).requires_grad_(True)
-    lr_g = settings.lr_geometry * bbox_scale * scale_lr
+    # start rates; the stage's lr_scale and decay are set before every step (_iteration)
+    lr_g = settings.lr_geometry * bbox_scale
+    lr_t = settings.lr_texture
     if ls is not None and settings.largesteps_uniform_adam:
         opt_geom = AdamUniform([geom], lr=lr_g, betas=settings.betas)
     else:
         opt_geom = torch.optim.Adam([geom], lr=lr_g, betas=settings.betas)
-    opt_tex = torch.optim.Adam([maps[k] for k in MAP_NAMES], lr=settings.lr_texture * scale_lr, betas=settings.betas)
+    opt_tex = torch.optim.Adam([maps[k] for k in MAP_NAMES], lr=lr_t, betas=settings.betas)
     if opt_state is not None:
         opt_geom.load_state_dict(opt_state["geom"])
         opt_tex.load_state_dict(opt_state["tex"])
@@ -152,7 +154,7 @@ def _build_stage(index, stage_settings, h, mesh, v_init, covered, map_values, se
     )
     targets = views.at(settings.stage_image_size(stage_settings))
     renderer = _make_renderer(settings, mesh)
-    return _Stage(index, stage_settings, h, mesh, v_init, covered, topo, geom, maps, opt_geom, opt_tex, ls,
+    return _Stage(index, stage_settings, h, bbox_scale, mesh, v_init, covered, topo, geom, maps, opt_geom, opt_tex, ls,
                   guard, renderer, targets)
 
 
@@ -211,6 +213,11 @@ def _iteration(st: _Stage, it: int, settings: OptimizeSettings, weights: dict, t
     st.opt_geom.zero_grad(set_to_none=True)
     st.opt_tex.zero_grad(set_to_none=True)
     total.backward()
+    f = st.settings.lr_factor(it)
+    for g in st.opt_geom.param_groups:
+        g["lr"] = settings.lr_geometry * st.bbox_scale * f
+    for g in st.opt_tex.param_groups:
+        g["lr"] = settings.lr_texture * f
     t4 = time.perf_counter()
     timer.add("backward", t4 - t3)
     st.opt_geom.step()
@@ -397,6 +404,41 @@ def optimize_capture(
     log.info("optimize: done in %.1f s (geometry processing %.1f%% of the iteration time)", wall,
              100 * summary["phase_fraction"]["geometry"])
     return summary
+
+
+def optimize_from_dirs(
+    views_dir: str | os.PathLike,
+    masks_dir: str | os.PathLike | None,
+    cameras_json: str | os.PathLike,
+    init_mesh_obj: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    settings: OptimizeSettings = OptimizeSettings(),
+    progress: bool = True,
+) -> dict:
+    """:func:`optimize_capture` over every view of ``cameras_json`` found in the stage folders.
+
+    ``views_dir`` holds ``<stem>.exr`` and, where pixels clipped, ``<stem>.sat.png`` (the
+    linearize stage's folder, or ``poses/undistorted``); ``masks_dir`` holds ``<stem>.png``
+    (None: no masks). Views without a camera (e.g. not registered by SfM) are not used.
+    """
+    views_dir = Path(views_dir)
+    cams = load_cameras(cameras_json)
+    images, masks, sats = [], [], []
+    for c in cams.frames:
+        img = views_dir / f"{c.stem}.exr"
+        if not img.is_file():
+            raise OptimizeError(f"{img}: the linear view of camera '{c.image}' is missing; rerun the "
+                                "linearize (or poses) stage")
+        images.append(img)
+        if masks_dir is not None:
+            m = Path(masks_dir) / f"{c.stem}.png"
+            if not m.is_file():
+                raise OptimizeError(f"{m}: no mask for view '{c.stem}'; rerun the masks stage")
+            masks.append(m)
+        sat = views_dir / f"{c.stem}.sat.png"
+        sats.append(sat if sat.is_file() else None)
+    return optimize_capture(images, masks if masks_dir is not None else None, sats, cameras_json, init_mesh_obj,
+                            out_dir, settings, progress)
 
 
 def _save(ckpt_dir, fp, st: _Stage, next_it: int, records, stage_infos, timer: _Timer, done: bool) -> None:

@@ -170,14 +170,9 @@ def _check_map(x: torch.Tensor, name: str) -> None:
         raise ValueError(f"{name} must be (H, W, C), got {tuple(x.shape)}")
 
 
-def _shift(x: torch.Tensor, dy: int, dx: int) -> torch.Tensor:
-    """``out[i, j] = x[i + dy, j + dx]`` with zeros outside (x is (H, W, C))."""
-    H, W = x.shape[:2]
-    out = torch.zeros_like(x)
-    ys, yd = (slice(dy, H), slice(0, H - dy)) if dy >= 0 else (slice(0, H + dy), slice(-dy, H))
-    xs, xd = (slice(dx, W), slice(0, W - dx)) if dx >= 0 else (slice(0, W + dx), slice(-dx, W))
-    out[yd, xd] = x[ys, xs]
-    return out
+def _pad_hw(x: torch.Tensor, r: int) -> torch.Tensor:
+    """Zero-pad an (H, W, C) map by ``r`` texels on each side."""
+    return torch.nn.functional.pad(x.permute(2, 0, 1), (r, r, r, r)).permute(1, 2, 0)
 
 
 def specular_bilateral_loss(
@@ -199,24 +194,32 @@ def specular_bilateral_loss(
         raise ValueError(f"specular {tuple(specular.shape)} and diffuse {tuple(diffuse.shape)} differ in size")
     if not (sigma_space > 0 and sigma_color > 0 and radius >= 1):
         raise ValueError("need sigma_space > 0, sigma_color > 0, radius >= 1")
-    d = diffuse.detach()
+    H, W = specular.shape[:2]
+    r = int(radius)
     vq = (
-        torch.ones(specular.shape[:2] + (1,), dtype=specular.dtype)
+        torch.ones((H, W, 1), dtype=specular.dtype)
         if valid is None
         else valid.to(specular.dtype)[..., None]
     )
-    num = torch.zeros_like(specular)
-    den = torch.zeros_like(vq)
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            dq = _shift(d, dy, dx)
-            w = torch.exp(
-                -(dy * dy + dx * dx) / (2 * sigma_space**2)
-                - ((d - dq) ** 2).sum(-1, keepdim=True) / (2 * sigma_color**2)
-            ) * _shift(vq, dy, dx)
-            num = num + w * _shift(specular, dy, dx)
-            den = den + w
-    avg = num / den.clamp(min=1e-12)
+    offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
+    # ---- weights mu_pq (constant: no gradient), channels first for speed ----
+    with torch.no_grad():
+        d = diffuse.detach().to(specular.dtype).permute(2, 0, 1)
+        dp = torch.nn.functional.pad(d, (r, r, r, r))
+        vp = _pad_hw(vq, r)[..., 0]
+        weights = []
+        den = torch.zeros((H, W), dtype=specular.dtype)
+        for dy, dx in offsets:
+            w = (d - dp[:, r + dy:r + dy + H, r + dx:r + dx + W]).square_().sum(0)
+            w.mul_(-1.0 / (2 * sigma_color**2)).add_(-(dy * dy + dx * dx) / (2 * sigma_space**2)).exp_()
+            w.mul_(vp[r + dy:r + dy + H, r + dx:r + dx + W])
+            den.add_(w)
+            weights.append(w)
+        den.clamp_(min=1e-12)
+        weights = [w.div_(den)[..., None] for w in weights]
+    # ---- the weighted average of specular and the L1 distance to it ----
+    sp = _pad_hw(specular, r)
+    avg = sum(w * sp[r + dy:r + dy + H, r + dx:r + dx + W] for w, (dy, dx) in zip(weights, offsets))
     err = (specular - avg).abs().mean(-1, keepdim=True) * vq
     return err.sum() / vq.sum().clamp(min=1.0)
 

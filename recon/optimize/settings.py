@@ -28,6 +28,8 @@ class StageSettings:
     iterations : optimizer steps in this stage.
     image_size : longest image side (pixels) the photos are downsampled to; 0 = ``resolution``.
     lr_scale : multiplies every learning rate in this stage (finer stages often take smaller steps).
+    lr_decay : the learning rates fall exponentially within the stage, to ``lr_decay`` times their
+        start at its last iteration (1 = constant).
     """
 
     edge_length: float = 0.02
@@ -35,6 +37,7 @@ class StageSettings:
     iterations: int = 100
     image_size: int = 0
     lr_scale: float = 1.0
+    lr_decay: float = 1.0
 
     def __post_init__(self):
         if not (0 < self.edge_length < 1):
@@ -47,6 +50,13 @@ class StageSettings:
             raise ValueError(f"image_size must be >= 0, got {self.image_size}")
         if not self.lr_scale > 0:
             raise ValueError(f"lr_scale must be > 0, got {self.lr_scale}")
+        if not 0 < self.lr_decay <= 1:
+            raise ValueError(f"lr_decay must be in (0, 1], got {self.lr_decay}")
+
+    def lr_factor(self, iteration: int) -> float:
+        """``lr_scale * lr_decay ** (iteration / (iterations - 1))``."""
+        n = max(int(self.iterations) - 1, 1)
+        return float(self.lr_scale * self.lr_decay ** (min(iteration, n) / n))
 
 
 def _default_stages() -> tuple[StageSettings, ...]:

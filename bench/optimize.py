@@ -1,0 +1,194 @@
+"""Benchmark of the optimize stage on a synthetic capture with ground truth.
+
+Runs ``recon.optimize.optimize_capture`` on a capture made by ``python -m recon synth`` (known
+cameras, masks, gt/), from the visual-hull initial mesh (``recon.init_mesh``) or a given one,
+and reports against the ground truth (DESIGN section 5): accuracy / completeness of the initial
+and the final mesh, their ratio, novel-view image RMSE (sRGB, union of masks) over views that
+were not optimized on, manifoldness and self-intersections, and the phase timings (the
+geometry-processing share against the paper's 55-70%).
+
+    python -m recon synth /tmp/blob --views 40 --res 256 --height 256 --format exr --object blob \
+        --cameras --masks --no-noise
+    python bench/optimize.py /tmp/blob --preset balanced --out bench/out/balanced
+    python bench/optimize.py /tmp/blob --preset balanced --set optimizer=adam --out bench/out/adam
+    python bench/optimize.py /tmp/blob --preset balanced --crude 0.04 --out bench/out/crude
+
+``--crude A`` replaces the initial mesh by a smoothed, shrunk visual hull whose accuracy is
+about A (the "crude initial mesh" scenario).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from recon.config import load_preset  # noqa: E402
+from recon.io.cameras import Camera, load_cameras, look_at  # noqa: E402
+from recon.io.images import read_exr  # noqa: E402
+from recon.io.mesh import Mesh, read_mesh, write_obj  # noqa: E402
+from recon.metrics import chamfer, image_rmse  # noqa: E402
+from recon.optimize import optimize_capture, settings_from_dict  # noqa: E402
+from recon.optimize.guard import self_intersecting_faces  # noqa: E402
+from recon.optimize.remesh import topology_report  # noqa: E402
+
+log = logging.getLogger("bench.optimize")
+
+
+def novel_cameras(cams, n: int = 8) -> list[Camera]:
+    """``n`` views between the capture's: other elevations, azimuths offset by a golden angle."""
+    c0 = cams.frames[0]
+    dist = float(np.median([np.linalg.norm(c.center) for c in cams.frames]))
+    out = []
+    for k in range(n):
+        z = 0.75 - 1.0 * (k + 0.5) / n
+        phi = 0.5 + k * 2 * np.pi / n
+        s = np.sqrt(1 - z * z)
+        eye = dist * np.array([s * np.cos(phi), s * np.sin(phi), z])
+        out.append(Camera(f"novel/{k:02d}.exr", c0.width, c0.height, c0.K.copy(), look_at(eye, [0, 0, 0])))
+    return out
+
+
+def hit_masks(mesh: Mesh, cams: list[Camera]) -> list[np.ndarray]:
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.v_pos.astype(np.float32)), o3d.core.Tensor(mesh.t_pos_idx.astype(np.uint32)))
+    out = []
+    for c in cams:
+        jj, ii = np.meshgrid(np.arange(c.width) + 0.5, np.arange(c.height) + 0.5)
+        pix = np.stack([jj.ravel(), ii.ravel(), np.ones(jj.size)], 1)
+        d = (pix @ np.linalg.inv(c.K).T) @ c.world_to_camera[:3, :3]
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        rays = np.concatenate([np.broadcast_to(c.center, d.shape), d], 1).astype(np.float32)
+        out.append(np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()).reshape(c.height, c.width))
+    return out
+
+
+def render(mesh: Mesh, maps: dict, cams: list[Camera], light: float, spp: int = 32) -> np.ndarray:
+    import torch
+
+    from recon.render import CollocatedRenderer, RenderSettings
+
+    r = CollocatedRenderer(mesh.t_pos_idx, mesh.v_tex, mesh.t_tex_idx, RenderSettings(spp=spp, boundary="none"))
+    with torch.no_grad():
+        return r.render_torch(torch.tensor(mesh.v_pos, dtype=torch.float32),
+                              *(torch.from_numpy(np.ascontiguousarray(maps[k])) for k in ("diffuse", "specular", "roughness")),
+                              cams, light, seed=12345).numpy()
+
+
+def crude_mesh(mesh: Mesh, gt: Mesh, target: float) -> Mesh:
+    """Shrink + smooth the visual hull until its accuracy is about ``target`` (bisection on the shrink)."""
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(mesh.v_pos, mesh.t_pos_idx))
+    ms.apply_coord_laplacian_smoothing(stepsmoothnum=10)
+    sm = ms.current_mesh()
+    base = Mesh(sm.vertex_matrix(), sm.face_matrix())
+    c = base.v_pos.mean(0)
+    lo, hi = 0.0, 0.5
+    best = base
+    for _ in range(12):
+        s = 0.5 * (lo + hi)
+        m = Mesh(c + (base.v_pos - c) * (1 - s), base.t_pos_idx)
+        acc = chamfer(m, gt, n_samples=20000)["accuracy"]
+        best = m
+        if acc < target:
+            lo = s
+        else:
+            hi = s
+    return best
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("capture", type=Path)
+    p.add_argument("--preset", default="balanced")
+    p.add_argument("--set", action="append", default=[], help="key=value (YAML) overriding the preset's optimize section")
+    p.add_argument("--init", type=Path, help="initial mesh (default: visual hull of the masks)")
+    p.add_argument("--crude", type=float, help="use a crude initial mesh of about this accuracy")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--novel", type=int, default=8)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
+
+    cap = args.capture
+    values = dict(load_preset(args.preset).get("optimize") or {})
+    for kv in args.set:
+        k, v = kv.split("=", 1)
+        values[k] = yaml.safe_load(v)
+    settings = settings_from_dict(values, f"preset {args.preset} + --set")
+    gt = read_mesh(cap / "gt" / "mesh.obj")
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    init_path = args.init
+    if init_path is None:
+        from recon.init_mesh import run_init_mesh
+
+        hull = cap.parent / f"{cap.name}_init"
+        if not (hull / "mesh.ply").is_file():
+            run_init_mesh(cap / "cameras.json", cap / "masks", hull)
+        init_path = hull / "mesh.ply"
+    if args.crude is not None:
+        init = crude_mesh(read_mesh(init_path), gt, args.crude)
+        init_path = args.out / "crude_init.obj"
+        write_obj(init_path, init)
+    init = read_mesh(init_path)
+
+    cams = load_cameras(cap / "cameras.json")
+    images = [cap / c.image for c in cams.frames]
+    masks = [cap / "masks" / f"{c.stem}.png" for c in cams.frames]
+    t0 = time.perf_counter()
+    summary = optimize_capture(images, masks, None, cap / "cameras.json", init_path, args.out / "optimize", settings)
+    wall = time.perf_counter() - t0
+
+    final = read_mesh(args.out / "optimize" / "mesh.obj")
+    acc0 = chamfer(init, gt)
+    acc1 = chamfer(final, gt)
+    maps = {k: read_exr(args.out / "optimize" / f"{k}.exr") for k in ("diffuse", "specular", "roughness")}
+    gt_maps = {k: read_exr(cap / "gt" / f"{k}.exr") for k in ("diffuse", "specular", "roughness")}
+    novel = novel_cameras(cams, args.novel)
+    img_rec = render(final, maps, novel, cams.light_intensity)
+    img_gt = render(gt, gt_maps, novel, cams.light_intensity)
+    m_rec, m_gt = hit_masks(final, novel), hit_masks(gt, novel)
+    rmse = [image_rmse(a, b, ma, mb) for a, b, ma, mb in zip(img_rec, img_gt, m_rec, m_gt)]
+    topo = topology_report(final.v_pos, final.t_pos_idx)
+    result = {
+        "capture": str(cap),
+        "preset": args.preset,
+        "overrides": args.set,
+        "init": str(init_path),
+        "init_accuracy": acc0,
+        "final_accuracy": acc1,
+        "accuracy_ratio": acc0["accuracy"] / acc1["accuracy"],
+        "novel_view_rmse": float(np.mean(rmse)),
+        "novel_view_rmse_per_view": rmse,
+        "manifold": bool(topo["is_mesh_two_manifold"]),
+        "boundary_edges": int(topo["boundary_edges"]),
+        "self_intersecting_faces": int(self_intersecting_faces(final.v_pos, final.t_pos_idx).sum()),
+        "wall_seconds": wall,
+        "phase_fraction": summary["phase_fraction"],
+        "phase_seconds": summary["phase_seconds"],
+        "stages": summary["stages"],
+        "final_losses": summary["final_losses"],
+    }
+    (args.out / "bench.json").write_text(json.dumps(result, indent=1))
+    np.save(args.out / "novel_render.npy", np.stack([img_rec, img_gt]))
+    print(json.dumps({k: result[k] for k in ("init_accuracy", "final_accuracy", "accuracy_ratio", "novel_view_rmse",
+                                             "manifold", "self_intersecting_faces", "wall_seconds", "phase_fraction")},
+                     indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

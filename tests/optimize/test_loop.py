@@ -1,0 +1,201 @@
+"""The optimize stage end to end on a tiny synthetic capture: outputs, kill/resume, improvement."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from recon.io.images import read_exr
+from recon.io.mesh import read_obj
+from recon.optimize import OptimizeSettings, StageSettings, optimize_capture, settings_from_dict
+from recon.optimize.guard import self_intersecting_faces
+from recon.optimize.remesh import is_manifold
+
+pytest.importorskip("recon.render", reason="recon.render (the renderer) is not available")
+
+HERE = Path(__file__).parent
+REPO = HERE.parents[1]
+
+TINY = OptimizeSettings(
+    resolution=32, spp=1, views_per_iteration=2, checkpoint_every=2, w_edge=0.01,
+    stages=(StageSettings(0.12, 32, 4), StageSettings(0.09, 64, 4)),
+)
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    import synthetic
+
+    root = tmp_path_factory.mktemp("capture")
+    cap = synthetic.make_capture(root, n_views=8, size=32, spp=16, subdivisions=3)
+    return root, cap
+
+
+def _inputs(root):
+    return (sorted((root / "images").glob("*.exr")), sorted((root / "masks").glob("*.png")), None,
+            root / "cameras.json", root / "init.obj")
+
+
+def _single_thread():
+    import drjit as dr
+
+    from recon.mi import load_variant
+
+    load_variant()
+    old = dr.thread_count()
+    dr.set_thread_count(1)  # float atomics in the renderer's backward pass are ordered with one thread
+    return old
+
+
+KILLER = """
+import os, signal, sys, json, logging
+logging.basicConfig(level=logging.INFO)
+sys.path.insert(0, {here!r})
+import drjit as dr
+from recon.mi import load_variant
+load_variant(); dr.set_thread_count(1)
+from recon.optimize import optimize_capture, settings_from_dict
+args = json.loads(sys.argv[1])
+count = 0
+def cb(rec):
+    global count
+    count += 1
+    if count == args["kill_after"]:
+        os.kill(os.getpid(), signal.SIGKILL)
+optimize_capture(args["images"], args["masks"], None, args["cameras"], args["init"], args["out"],
+                 settings_from_dict(args["settings"]), progress=False, callback=cb)
+"""
+
+
+def _killed_run(root, out, kill_after):
+    images, masks, _, cams, init = _inputs(root)
+    args = {"images": [str(p) for p in images], "masks": [str(p) for p in masks], "cameras": str(cams),
+            "init": str(init), "out": str(out), "settings": TINY.to_dict(), "kill_after": kill_after}
+    p = subprocess.run([sys.executable, "-c", KILLER.format(here=str(HERE)), json.dumps(args)],
+                       capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert p.returncode == -9, p.stderr[-3000:]  # SIGKILL
+    return p.stderr
+
+
+def test_outputs_resume_after_kill_and_match(capture, tmp_path):
+    root, _ = capture
+    images, masks, sats, cams, init = _inputs(root)
+    old = _single_thread()
+    try:
+        ref = optimize_capture(images, masks, sats, cams, init, tmp_path / "ref", TINY, progress=False)
+        # killed in stage 0 (iteration 2 lost: last checkpoint after iteration 1) ...
+        err1 = _killed_run(root, tmp_path / "run", 3)
+        assert "resuming" not in err1
+        # ... resumed, killed again in stage 1 ...
+        err2 = _killed_run(root, tmp_path / "run", 3)
+        assert "resuming from checkpoint: stage 0, iteration 2" in err2
+        # ... and finished here.
+        got = optimize_capture(images, masks, sats, cams, init, tmp_path / "run", TINY, progress=False)
+    finally:
+        import drjit as dr
+
+        dr.set_thread_count(old)
+    a, b = tmp_path / "ref", tmp_path / "run"
+    for name in ("mesh.obj", "diffuse.exr", "specular.exr", "roughness.exr", "log.jsonl", "summary.json"):
+        assert (a / name).is_file() and (b / name).is_file()
+    assert (b / "checkpoints" / "last.pt").is_file()
+    ma, mb = read_obj(a / "mesh.obj"), read_obj(b / "mesh.obj")
+    np.testing.assert_array_equal(ma.v_pos, mb.v_pos)
+    np.testing.assert_array_equal(ma.t_tex_idx, mb.t_tex_idx)
+    for k in ("diffuse", "specular", "roughness"):
+        np.testing.assert_array_equal(read_exr(a / f"{k}.exr"), read_exr(b / f"{k}.exr"))
+    la = [json.loads(x) for x in (a / "log.jsonl").read_text().splitlines()]
+    lb = [json.loads(x) for x in (b / "log.jsonl").read_text().splitlines()]
+    assert len(la) == len(lb) == 8
+    for ra, rb in zip(la, lb):
+        assert {k: v for k, v in ra.items() if not k.startswith("t_")} == {
+            k: v for k, v in rb.items() if not k.startswith("t_")}
+    assert got["final_losses"] == ref["final_losses"]
+    # outputs: the contract's maps and a clean mesh
+    d = read_exr(a / "diffuse.exr")
+    assert d.shape == (64, 64, 3) and read_exr(a / "roughness.exr").shape == (64, 64, 1)
+    assert np.all((d >= 0) & (d <= 1)) and np.all(read_exr(a / "roughness.exr") >= TINY.r_min - 1e-6)
+    assert ma.has_uv and is_manifold(ma.v_pos, ma.t_pos_idx)
+    assert not self_intersecting_faces(ma.v_pos, ma.t_pos_idx).any()
+    assert ref["mesh"]["manifold"] and ref["mesh"]["self_intersecting_faces"] == 0
+    assert [s["iterations"] for s in ref["stages"]] == [4, 4]
+    assert set(ref["phase_fraction"]) == {"render", "loss", "backward", "step", "geometry"}
+    assert sum(ref["phase_fraction"].values()) == pytest.approx(1.0)
+    # a finished checkpoint of the same inputs is reused: no new iterations
+    again = optimize_capture(images, masks, sats, cams, init, a, TINY, progress=False)
+    assert again["iterations"] == 8 and again["final_losses"] == ref["final_losses"]
+
+
+def test_other_settings_start_afresh(capture, tmp_path):
+    root, _ = capture
+    images, masks, sats, cams, init = _inputs(root)
+    short = OptimizeSettings(**{**TINY.__dict__, "stages": (StageSettings(0.12, 32, 2),)})
+    optimize_capture(images, masks, sats, cams, init, tmp_path, short, progress=False)
+    other = OptimizeSettings(**{**short.__dict__, "seed": 1})
+    s = optimize_capture(images, masks, sats, cams, init, tmp_path, other, progress=False)
+    log = [json.loads(x) for x in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert s["iterations"] == 2 and [r["iteration"] for r in log] == [0, 1]
+
+
+def test_bad_inputs(capture, tmp_path):
+    root, _ = capture
+    images, masks, sats, cams, init = _inputs(root)
+    from recon.optimize.views import ViewsError
+
+    with pytest.raises(ViewsError, match="one mask per image"):
+        optimize_capture(images, masks[:2], sats, cams, init, tmp_path, TINY, progress=False)
+    assert not (tmp_path / "mesh.obj").exists()
+
+
+def test_settings_from_preset_dict():
+    s = settings_from_dict({"stages": [{"edge_length": 0.05, "texture_size": 64, "iterations": 3}], "optimizer": "adam"})
+    assert s.stages[0].texture_size == 64 and s.optimizer == "adam"
+    from recon.config import ConfigError
+
+    with pytest.raises(ConfigError, match="unknown OptimizeSettings key"):
+        settings_from_dict({"iters": 3})
+    with pytest.raises(ConfigError, match="optimizer must be one of"):
+        settings_from_dict({"optimizer": "sgd"})
+    with pytest.raises(ConfigError, match="edge_length"):
+        settings_from_dict({"stages": [{"edge_length": 2.0}]})
+    abl = OptimizeSettings(coarse_to_fine=False, use_laplacian=False, use_material_priors=False)
+    (only,) = abl.effective_stages()
+    assert only.iterations == sum(st.iterations for st in abl.stages)
+    assert only.edge_length == abl.stages[-1].edge_length
+    w = abl.weights()
+    assert w["laplacian"] == w["specular"] == w["roughness"] == 0 and w["edge"] > 0
+    assert OptimizeSettings(use_normal_edge=False).weights()["normal"] == 0
+
+
+def test_from_dirs_pairs_views_masks_and_clipped_pixels(capture, tmp_path):
+    from recon.io.images import write_mask
+    from recon.optimize import OptimizeError, optimize_from_dirs
+
+    root, cap = capture
+    sat = root / "images" / "0000.sat.png"
+    write_mask(sat, np.zeros((32, 32), bool))
+    short = OptimizeSettings(**{**TINY.__dict__, "stages": (StageSettings(0.12, 32, 1),)})
+    s = optimize_from_dirs(root / "images", root / "masks", root / "cameras.json", root / "init.obj", tmp_path, short,
+                           progress=False)
+    assert s["iterations"] == 1
+    sat.unlink()
+    (tmp_path / "m").mkdir()
+    with pytest.raises(OptimizeError, match=r"0000\.png: no mask for view '0000'"):
+        optimize_from_dirs(root / "images", tmp_path / "m", root / "cameras.json", root / "init.obj", tmp_path, short)
+
+
+@pytest.mark.parametrize("preset", ["draft", "balanced", "accurate"])
+def test_presets_build(preset):
+    from recon.config import load_preset
+
+    section = load_preset(preset).get("optimize")
+    if section is None:
+        pytest.skip(f"config/presets/{preset}.yaml has no optimize section yet")
+    s = settings_from_dict(section, f"{preset}.yaml")
+    assert len(s.stages) >= 1 and all(st.iterations > 0 for st in s.stages)
+    edges = [st.edge_length for st in s.stages]
+    assert edges == sorted(edges, reverse=True)  # coarse to fine

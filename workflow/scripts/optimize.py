@@ -1,0 +1,16 @@
+"""Snakemake adapter of the optimize stage: calls recon.optimize.optimize_from_dirs (no logic here)."""
+
+from pathlib import Path
+
+from recon.logs import configure
+from recon.optimize import optimize_from_dirs, settings_from_dict
+
+configure(snakemake.log[0])  # noqa: F821 (injected by Snakemake)
+optimize_from_dirs(
+    snakemake.params.views_dir,  # noqa: F821
+    snakemake.params.masks_dir,  # noqa: F821
+    snakemake.input.cameras,  # noqa: F821
+    snakemake.input.mesh,  # noqa: F821
+    Path(snakemake.output.mesh).parent,  # noqa: F821
+    settings_from_dict(snakemake.params.settings),  # noqa: F821
+)
