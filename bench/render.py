@@ -212,15 +212,19 @@ def main(argv=None) -> int:
               f"grad rel err {results[name][1]:.4f}  ("
               + ", ".join(f"{k} {v:.3f}" for k, v in errs.items()) + ")")
 
-    t_ours, e_ours, _ = results["ours (edge sampling)"]
-    t_int, _, _ = results["ours (interior only)"]
-    t_proj, e_proj, _ = results["mitsuba direct_projective"]
-    t_dir, _, _ = results["mitsuba direct (interior only)"]
-    out(f"ratios: ours / ours interior-only = {t_ours / t_int:.2f}, "
-          f"ours / mitsuba direct = {t_ours / t_dir:.2f}, "
-          f"mitsuba direct_projective / ours = {t_proj / t_ours:.1f}")
-    out(f"speedup_vs_direct_projective={t_proj / t_ours:.2f} grad_rel_err={e_ours:.4f} "
-          f"grad_rel_err_projective={e_proj:.4f}")
+    # Ratios per round (the methods of one round ran back to back, under the same load),
+    # then the median over rounds: robust to a machine whose load changes during the run.
+    t = {name: np.array(v) for name, v in times.items()}
+    ours, interior = t["ours (edge sampling)"], t["ours (interior only)"]
+    proj, direct = t["mitsuba direct_projective"], t["mitsuba direct (interior only)"]
+    e_ours = results["ours (edge sampling)"][1]
+    e_proj = results["mitsuba direct_projective"][1]
+    speedup = float(np.median(proj / ours))
+    out(f"ratios (median over rounds): ours / ours interior-only = "
+        f"{np.median(ours / interior):.2f}, ours / mitsuba direct = {np.median(ours / direct):.2f}, "
+        f"mitsuba direct_projective / ours = {speedup:.1f}")
+    out(f"speedup_vs_direct_projective={speedup:.2f} grad_rel_err={e_ours:.4f} "
+        f"grad_rel_err_projective={e_proj:.4f}")
     return 0
 
 
