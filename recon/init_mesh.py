@@ -1,0 +1,369 @@
+"""Stage ``init_mesh``: a coarse, watertight, manifold starting shape (DESIGN section 2).
+
+A given ``init_mesh.ply`` passes through after validation. Otherwise the visual hull of the
+masks, built without CUDA:
+
+1. Silhouette distance field on a grid (``resolution``^3 in [-bound, bound]^3): for every view
+   the signed 2-D distance of a voxel's projection to the mask's outline (positive inside,
+   from ``cv2.distanceTransform``, bilinear), converted to world units at the voxel's depth
+   (``d_px * z / f``: the distance to the silhouette cone at that depth). The field is the
+   minimum over the views that see the voxel (intersection of the cones), minus
+   ``mask_margin_px`` pixels of safety. Unlike binary carving of voxel centers, the zero level
+   set lies between voxels, so the hull's surface is placed to sub-voxel precision.
+   Voxels seen by fewer than ``min_views`` views count as outside.
+2. Zero level set by flying-edges marching cubes (``open3d.t.geometry.TriangleMesh.
+   create_isosurfaces``); positive inside gives outward normals (checked: positive volume).
+   The largest connected component is kept.
+3. pymeshlab clean-up and isotropic remeshing (``meshing_isotropic_explicit_remeshing``) to
+   the edge length that gives about ``target_faces`` faces.
+4. Checks: watertight (no boundary edges), two-manifold, one component, positive volume;
+   :class:`InitMeshError` otherwise.
+
+The mesh is in the cameras.json frame. The visual hull contains the object (never cuts it when
+the masks are right) but cannot see concavities; the optimizer carves those.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from recon.io.atomic import atomic_dir
+from recon.io.cameras import CameraError, CameraSet, load_cameras
+from recon.io.images import read_mask
+from recon.io.mesh import Mesh, MeshError, read_mesh, write_ply
+
+log = logging.getLogger(__name__)
+
+
+class InitMeshError(ValueError):
+    """An initial mesh that cannot be made or used; the message names the input and the fix."""
+
+
+@dataclass(frozen=True)
+class InitMeshSettings:
+    resolution: int = 128  # grid cells per axis
+    bound: float = 1.0  # the grid spans [-bound, bound]^3 (the poses stage's object cube)
+    min_views: int = 2  # a voxel must be seen by this many views to be kept
+    mask_margin_px: float = 0.5  # grow the silhouettes by this many pixels (mask edge safety)
+    target_faces: int = 5000
+    remesh_iterations: int = 8
+
+    def __post_init__(self):
+        if self.resolution < 8:
+            raise ValueError(f"resolution must be >= 8, got {self.resolution}")
+        if self.bound <= 0 or self.target_faces < 100 or self.min_views < 1:
+            raise ValueError("bound must be > 0, target_faces >= 100 and min_views >= 1")
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Voxel centers ``origin + step * (i, j, k)`` for i, j, k in [0, resolution)."""
+
+    origin: np.ndarray  # (3,) the center of voxel (0, 0, 0)
+    step: float
+    resolution: int
+
+    @staticmethod
+    def cube(center, half_size: float, resolution: int) -> "Grid":
+        step = 2.0 * half_size / resolution
+        return Grid(np.asarray(center, float) - half_size + 0.5 * step, step, resolution)
+
+    def points(self) -> np.ndarray:
+        """(R^3, 3) voxel centers in C order (i slowest)."""
+        a = np.arange(self.resolution) * self.step
+        g = np.stack(np.meshgrid(a, a, a, indexing="ij"), axis=-1).reshape(-1, 3)
+        return g + self.origin
+
+
+def _signed_distance_px(mask: np.ndarray) -> np.ndarray:
+    """(H, W) float32 signed distance to the mask outline in pixels, positive inside.
+
+    The outline sits between pixels: the values are +-0.5 on the two sides of it.
+    """
+    import cv2
+
+    m = mask.astype(np.uint8)
+    inside = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    outside = cv2.distanceTransform(1 - m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return np.where(m > 0, inside - 0.5, 0.5 - outside).astype(np.float32)
+
+
+def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of an (H, W) map sampled at pixel centers, at continuous pixel
+    coordinates ``x`` (column) and ``y`` (row) (pixel (i, j) covers [j, j+1] x [i, i+1]);
+    clamped at the border."""
+    h, w = image.shape
+    px = np.clip(x - 0.5, 0, w - 1)
+    py = np.clip(y - 0.5, 0, h - 1)
+    x0 = np.minimum(px.astype(np.int64), w - 2) if w > 1 else np.zeros(len(px), np.int64)
+    y0 = np.minimum(py.astype(np.int64), h - 2) if h > 1 else np.zeros(len(py), np.int64)
+    fx, fy = px - x0, py - y0
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    return ((1 - fy) * ((1 - fx) * image[y0, x0] + fx * image[y0, x1])
+            + fy * ((1 - fx) * image[y1, x0] + fx * image[y1, x1]))
+
+
+def silhouette_field(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid, min_views: int = 2,
+                     margin_px: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Visual-hull distance field on ``grid``.
+
+    Parameters
+    ----------
+    cams : cameras (pinhole, OpenCV axes); views without a mask are skipped.
+    masks : stem -> (H, W) bool, the size of the camera's image.
+
+    Returns
+    -------
+    field : (R, R, R) float32
+        Approximate distance to the hull surface in world units, positive inside.
+    seen : (R, R, R) int16
+        How many views see each voxel.
+    """
+    pts = grid.points().astype(np.float32)
+    field = np.full(len(pts), np.inf, np.float32)
+    seen = np.zeros(len(pts), np.int16)
+    used = 0
+    for cam in cams:
+        mask = masks.get(cam.stem)
+        if mask is None:
+            continue
+        if mask.shape != (cam.height, cam.width):
+            raise InitMeshError(f"mask of {cam.stem} is {mask.shape[::-1]} but its camera is {cam.width}x{cam.height}")
+        used += 1
+        sd = _signed_distance_px(mask) + np.float32(margin_px)
+        alive = np.flatnonzero(field > -4 * grid.step)  # far-outside voxels stay outside
+        P = (cam.K @ cam.world_to_camera[:3, :]).astype(np.float32)  # (3, 4) projection
+        h = pts[alive] @ P[:, :3].T + P[:, 3]
+        z = h[:, 2]
+        front = z > 1e-6
+        zs = np.where(front, z, 1.0)
+        x, y = h[:, 0] / zs, h[:, 1] / zs
+        inimg = front & (x >= 0) & (x < cam.width) & (y >= 0) & (y < cam.height)
+        sel = np.flatnonzero(inimg)
+        f = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
+        d_world = bilinear(sd, x[sel], y[sel]) * (z[sel] / np.float32(f))
+        idx = alive[sel]
+        field[idx] = np.minimum(field[idx], d_world)
+        seen[idx] += 1
+    if used < 2:
+        raise InitMeshError(f"a visual hull needs masks for at least 2 views, found {used}")
+    field[seen < min_views] = -np.inf
+    field = np.where(np.isfinite(field), field, np.where(field > 0, 4 * grid.step, -4 * grid.step))
+    r = grid.resolution
+    return field.reshape(r, r, r).astype(np.float32), seen.reshape(r, r, r)
+
+
+def carve_visual_hull(cams: CameraSet, masks: dict[str, np.ndarray], resolution: int = 128,
+                      center=(0.0, 0.0, 0.0), half_size: float = 1.0, min_views: int = 2,
+                      margin_px: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Occupancy (R, R, R) bool of the visual hull in a cube, and the voxel-center offsets.
+
+    The second value is the 1-D array of voxel-center coordinates along each axis relative to
+    0 (add ``center`` per axis), i.e. voxel (i, j, k) is at ``center + (a[i], a[j], a[k])``.
+    """
+    grid = Grid.cube(center, half_size, resolution)
+    field, _ = silhouette_field(cams, masks, grid, min_views, margin_px)
+    a = np.arange(resolution) * grid.step - half_size + 0.5 * grid.step
+    return field > 0, a
+
+
+def isosurface(field: np.ndarray, grid: Grid) -> Mesh:
+    """Zero level set of ``field`` (positive inside) as a closed mesh with outward normals."""
+    import open3d as o3d
+
+    pad = np.pad(field.astype(np.float32), 1, constant_values=-abs(float(grid.step)))  # closes the surface
+    if not (pad > 0).any():
+        raise InitMeshError("the visual hull is empty: the masks and the cameras do not agree "
+                            "(check the masks, and that the object lies inside [-1, 1]^3)")
+    m = o3d.t.geometry.TriangleMesh.create_isosurfaces(o3d.core.Tensor(pad), [0.0])
+    v = m.vertex.positions.numpy().astype(np.float64)[:, ::-1]  # open3d returns (k, j, i)
+    f = m.triangle.indices.numpy().astype(np.int64)
+    if len(f) == 0:
+        raise InitMeshError("marching cubes returned no surface")
+    v = (v - 1.0) * grid.step + grid.origin  # index space (padded) -> world
+    mesh = Mesh(v, f)
+    if mesh.volume() < 0:
+        mesh = Mesh(v, f[:, ::-1])
+    return mesh
+
+
+def topology(mesh: Mesh) -> dict:
+    """pymeshlab's topological measures plus the signed volume."""
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(mesh.v_pos, mesh.t_pos_idx))
+    t = ms.get_topological_measures()
+    t = {k: (bool(v) if isinstance(v, bool) else int(v)) for k, v in t.items()}
+    t["volume"] = mesh.volume()
+    return t
+
+
+def check_closed_manifold(mesh: Mesh, what: str = "mesh") -> dict:
+    """Raise :class:`InitMeshError` unless ``mesh`` is watertight, two-manifold and outward."""
+    t = topology(mesh)
+    problems = []
+    if t["boundary_edges"]:
+        problems.append(f"{t['boundary_edges']} boundary edges (holes)")
+    if not t["is_mesh_two_manifold"] or t["non_two_manifold_edges"] or t["non_two_manifold_vertices"]:
+        problems.append(f"{t['non_two_manifold_edges']} non-manifold edges, "
+                        f"{t['non_two_manifold_vertices']} non-manifold vertices")
+    if t["unreferenced_vertices"]:
+        problems.append(f"{t['unreferenced_vertices']} unreferenced vertices")
+    if t["volume"] <= 0:
+        problems.append(f"non-positive volume {t['volume']:.3g} (inward normals)")
+    if problems:
+        raise InitMeshError(f"{what} is not a watertight two-manifold: " + "; ".join(problems))
+    return t
+
+
+def largest_component(mesh: Mesh) -> Mesh:
+    """The connected component (by shared vertices) with the most faces, compacted."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = mesh.t_pos_idx
+    nv = len(mesh.v_pos)
+    rows = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+    cols = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+    g = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(nv, nv))
+    n, label = connected_components(g, directed=False)
+    if n > 1:
+        face_label = label[f[:, 0]]
+        keep = face_label == np.argmax(np.bincount(face_label))
+        f = f[keep]
+    used = np.unique(f)
+    remap = np.full(nv, -1)
+    remap[used] = np.arange(len(used))
+    return Mesh(mesh.v_pos[used], remap[f])
+
+
+def remesh(mesh: Mesh, target_faces: int, iterations: int = 8) -> Mesh:
+    """Clean and isotropically remesh to about ``target_faces`` faces (pymeshlab)."""
+    import pymeshlab
+
+    # equilateral triangles of edge L: area sqrt(3)/4 L^2 each
+    edge = float(np.sqrt(4.0 * mesh.area() / (np.sqrt(3.0) * target_faces)))
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(mesh.v_pos, mesh.t_pos_idx))
+    ms.meshing_remove_duplicate_vertices()
+    ms.meshing_remove_null_faces()
+    if len(mesh.t_pos_idx) > 8 * target_faces:  # cheaper remeshing from a decimated start
+        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=4 * target_faces, preservetopology=True,
+                                                    preserveboundary=True, planarquadric=True)
+    ms.meshing_isotropic_explicit_remeshing(iterations=iterations, targetlen=pymeshlab.PureValue(edge))
+    ms.meshing_remove_unreferenced_vertices()
+    m = ms.current_mesh()
+    out = Mesh(m.vertex_matrix(), m.face_matrix())
+    if out.volume() < 0:
+        out = Mesh(out.v_pos, out.t_pos_idx[:, ::-1])
+    return out
+
+
+def visual_hull_mesh(cams: CameraSet, masks: dict[str, np.ndarray],
+                     settings: InitMeshSettings = InitMeshSettings()) -> tuple[Mesh, dict]:
+    """The remeshed visual hull in [-bound, bound]^3 and statistics."""
+    t0 = time.perf_counter()
+    grid = Grid.cube((0.0, 0.0, 0.0), settings.bound, settings.resolution)
+    field, seen = silhouette_field(cams, masks, grid, settings.min_views, settings.mask_margin_px)
+    t1 = time.perf_counter()
+    inside = field > 0
+    touches = bool(inside[0].any() or inside[-1].any() or inside[:, 0].any() or inside[:, -1].any()
+                   or inside[:, :, 0].any() or inside[:, :, -1].any())
+    if touches:
+        log.warning("the visual hull reaches the edge of [-%g, %g]^3: the object may be cut off "
+                    "(masks including background, or an object frame that is too small)",
+                    settings.bound, settings.bound)
+    raw = largest_component(isosurface(field, grid))
+    t2 = time.perf_counter()
+    mesh = remesh(raw, settings.target_faces, settings.remesh_iterations)
+    t3 = time.perf_counter()
+    stats = {
+        "voxels_inside": int(inside.sum()),
+        "raw_faces": int(len(raw.t_pos_idx)),
+        "faces": int(len(mesh.t_pos_idx)),
+        "vertices": int(len(mesh.v_pos)),
+        "touches_bounds": touches,
+        "timings": {"field_s": t1 - t0, "isosurface_s": t2 - t1, "remesh_s": t3 - t2},
+    }
+    return mesh, stats
+
+
+def _read_masks_for(cams: CameraSet, masks_dir: Path) -> dict[str, np.ndarray]:
+    masks = {}
+    for c in cams:
+        p = masks_dir / f"{c.stem}.png"
+        if p.is_file():
+            m = read_mask(p)
+            if m.shape != (c.height, c.width):
+                raise InitMeshError(f"{p}: mask is {m.shape[1]}x{m.shape[0]} but the camera of {c.image} "
+                                    f"is {c.width}x{c.height}; masks must be in the cameras' (pinhole) images")
+            masks[c.stem] = m
+    if len(masks) < 2:
+        raise InitMeshError(f"{masks_dir}: masks for {len(masks)} of {len(cams)} views; the visual hull "
+                            "needs the masks stage's output (or give init_mesh.ply in the capture)")
+    return masks
+
+
+def run_init_mesh(
+    cameras_json: str | os.PathLike,
+    masks_dir: str | os.PathLike | None,
+    out_dir: str | os.PathLike,
+    settings: InitMeshSettings = InitMeshSettings(),
+    given_mesh: str | os.PathLike | None = None,
+) -> dict:
+    """Write ``out_dir/mesh.ply`` (and ``init_mesh.json``); ``out_dir`` is replaced atomically.
+
+    Parameters
+    ----------
+    cameras_json : the cameras (the capture's, or the poses stage's).
+    masks_dir : masks in the cameras' pinhole images (``<stem>.png``): the masks stage's folder
+        for given cameras, ``poses/undistorted/masks`` after SfM.
+    given_mesh : the capture's ``init_mesh.ply``: validated and copied unchanged.
+    """
+    out_dir = Path(out_dir)
+    t0 = time.perf_counter()
+    with atomic_dir(out_dir) as tmp:
+        if given_mesh is not None:
+            given_mesh = Path(given_mesh)
+            try:
+                mesh = read_mesh(given_mesh)
+            except MeshError as e:
+                raise InitMeshError(str(e)) from e
+            try:
+                topo = check_closed_manifold(mesh, str(given_mesh))
+            except InitMeshError as e:
+                raise InitMeshError(f"{e}; repair it (e.g. MeshLab) or delete it to use the visual hull") from e
+            if given_mesh.suffix.lower() == ".ply":
+                shutil.copyfile(given_mesh, tmp / "mesh.ply")
+            else:
+                write_ply(tmp / "mesh.ply", mesh)
+            stats = {"source": "given", "mesh": str(given_mesh), "faces": int(len(mesh.t_pos_idx))}
+        else:
+            try:
+                cams = load_cameras(cameras_json)
+            except CameraError as e:
+                raise InitMeshError(f"{e}; rerun the poses stage") from e
+            if masks_dir is None:
+                raise InitMeshError("no masks folder given: the visual hull needs masks")
+            masks = _read_masks_for(cams, Path(masks_dir))
+            mesh, stats = visual_hull_mesh(cams, masks, settings)
+            topo = check_closed_manifold(mesh, "the visual hull mesh")
+            write_ply(tmp / "mesh.ply", mesh)
+            stats["source"] = "visual_hull"
+            stats["views_with_masks"] = len(masks)
+        stats["topology"] = topo
+        stats["settings"] = asdict(settings)
+        stats["seconds"] = time.perf_counter() - t0
+        (tmp / "init_mesh.json").write_text(json.dumps(stats, indent=1))
+    log.info("initial mesh (%s): %d faces, genus %d, %.1f s", stats["source"], stats["faces"],
+             topo["genus"], stats["seconds"])
+    return stats

@@ -1,0 +1,243 @@
+"""Stage ``masks``: one object mask per view (DESIGN section 2).
+
+Given masks (``<capture>/masks/<stem>.png``, nonzero = object) are used as they are. Otherwise
+a mask is derived from the linear image, relying on the capture's physics: the only light is
+the flash at the camera, so irradiance falls off with the squared distance and a background
+farther away than the object is much darker than the object (often pure noise).
+
+Method (why each step):
+
+1. Luminance (Rec.709 weights) of the linear image, floored at ``1e-4`` of its 99.9th
+   percentile, in log10. The log turns "much darker" into "far apart" and makes the split
+   independent of the exposure scale.
+2. Otsu's threshold on the log-luminance histogram splits object from background when the
+   histogram is bimodal (flash falloff makes it so). Otsu alone sits in the middle of the gap,
+   which loses the object's own dark pixels (surfaces seen at grazing angles near the
+   silhouette are lit at grazing angles too, so they are dark). The threshold is therefore
+   lowered to just above the background class: ``min(otsu, median_bg + k * MAD_bg)`` in log
+   space (``k = background_sigmas``). A pure black background (synthetic captures) then keeps
+   every pixel that received any light.
+3. A small opening removes speckles (noise, dust); the largest connected component is the
+   object (a flash-lit capture has one object in the middle); holes smaller than
+   ``max_hole_fraction`` of the object's area are filled (dark texture or specular-free spots
+   inside the object), larger ones are kept (real through-holes, e.g. a handle); a small
+   closing smooths the outline.
+
+Masks feed the visual hull (:mod:`recon.init_mesh`), where a mask that is too small carves
+away object, so every step errs on the side of a slightly larger mask.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from recon.io.atomic import atomic_dir
+from recon.io.images import ImageError, read_exr, read_mask, write_mask
+
+log = logging.getLogger(__name__)
+
+LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
+
+class MaskError(ValueError):
+    """A mask that cannot be made or used; the message names the file and the fix."""
+
+
+@dataclass(frozen=True)
+class MaskSettings:
+    """Settings of the derived masks (given masks are used unchanged).
+
+    Radii are fractions of the image's shorter side, so they mean the same at any resolution.
+    """
+
+    floor: float = 1e-4  # luminance floor relative to the 99.9th percentile
+    background_sigmas: float = 4.0  # threshold = min(otsu, bg median + this * bg MAD), log space
+    open_radius: float = 0.004  # speckle removal
+    close_radius: float = 0.008  # outline smoothing
+    max_hole_fraction: float = 0.02  # holes smaller than this fraction of the object are filled
+    dilate_px: int = 0  # extra safety margin in pixels (after everything else)
+    min_coverage: float = 0.001  # warn when a mask covers less than this fraction of the image
+    max_coverage: float = 0.95  # ... or more than this
+
+    def __post_init__(self):
+        if not 0 < self.floor < 1:
+            raise ValueError(f"floor must be in (0, 1), got {self.floor}")
+        if self.background_sigmas < 0 or self.open_radius < 0 or self.close_radius < 0 or self.dilate_px < 0:
+            raise ValueError("background_sigmas, open_radius, close_radius and dilate_px must be >= 0")
+        if not 0 <= self.max_hole_fraction <= 1:
+            raise ValueError(f"max_hole_fraction must be in [0, 1], got {self.max_hole_fraction}")
+
+
+def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
+    """Otsu's threshold of 1-D ``values`` (maximizes the between-class variance)."""
+    v = np.asarray(values, dtype=np.float64).ravel()
+    lo, hi = float(v.min()), float(v.max())
+    if hi - lo < 1e-12:
+        return hi
+    hist, edges = np.histogram(v, bins=bins, range=(lo, hi))
+    centers = 0.5 * (edges[:-1] + edges[1:])
+    w0 = np.cumsum(hist).astype(np.float64)
+    w1 = w0[-1] - w0
+    m0 = np.cumsum(hist * centers)
+    mu0 = m0 / np.maximum(w0, 1)
+    mu1 = (m0[-1] - m0) / np.maximum(w1, 1)
+    between = (w0 * w1 * (mu0 - mu1) ** 2)[:-1]
+    # the criterion is flat across an empty gap between the modes: take the plateau's middle
+    best = np.flatnonzero(between >= between.max() * (1 - 1e-9))
+    k = int(best[len(best) // 2])
+    return float(edges[k + 1])
+
+
+def _disk(radius_px: int):
+    import cv2
+
+    d = 2 * radius_px + 1
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d, d))
+
+
+def derive_mask(rgb_linear: np.ndarray, settings: MaskSettings = MaskSettings()) -> tuple[np.ndarray, dict]:
+    """Object mask of one flash-lit linear image (method in the module docstring).
+
+    Parameters
+    ----------
+    rgb_linear : (H, W, C) float
+        Linear image, C = 1 or 3 (a 4th channel is ignored).
+
+    Returns
+    -------
+    mask : (H, W) bool
+    info : dict
+        ``threshold_log10``, ``otsu_log10`` and ``coverage`` (fraction of the image).
+    """
+    import cv2
+    from scipy import ndimage
+
+    img = np.asarray(rgb_linear, dtype=np.float32)
+    if img.ndim == 2:
+        img = img[:, :, None]
+    if img.ndim != 3 or img.shape[2] not in (1, 3, 4):
+        raise MaskError(f"derive_mask needs an (H, W, C) image, got shape {img.shape}")
+    img = np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0)
+    lum = img[:, :, 0] if img.shape[2] == 1 else img[:, :, :3] @ LUMA
+    lum = np.maximum(lum, 0.0)
+    top = float(np.percentile(lum, 99.9))
+    if top <= 0:
+        raise MaskError("the image is black: no object can be found (is the flash in the photo?)")
+    log_l = np.log10(np.maximum(lum, settings.floor * top))
+    t_otsu = otsu_threshold(log_l)
+    bg = log_l[log_l <= t_otsu]
+    med = float(np.median(bg))
+    mad = 1.4826 * float(np.median(np.abs(bg - med)))
+    # the smallest step above a constant background is a hair above the floor
+    t = min(t_otsu, med + settings.background_sigmas * mad + 1e-6)
+    mask = log_l > t
+
+    short = min(mask.shape)
+    r_open = int(round(settings.open_radius * short))
+    r_close = int(round(settings.close_radius * short))
+    m8 = mask.astype(np.uint8)
+    if r_open > 0:
+        m8 = cv2.morphologyEx(m8, cv2.MORPH_OPEN, _disk(r_open))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(m8, connectivity=8)
+    if n <= 1:
+        raise MaskError("no foreground left after removing speckles: the object is too dark or too small")
+    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    mask = labels == largest
+    # fill small holes only: large ones may be real (a handle, the inside of a ring)
+    holes = ndimage.binary_fill_holes(mask) & ~mask
+    if holes.any():
+        hl, nh = ndimage.label(holes)
+        sizes = ndimage.sum_labels(holes, hl, index=np.arange(1, nh + 1))
+        small = np.flatnonzero(sizes <= settings.max_hole_fraction * mask.sum()) + 1
+        mask |= np.isin(hl, small)
+    if r_close > 0:
+        # pad so that the closing does not glue the object to the image border
+        pad = r_close + 1
+        m8 = np.pad(mask.astype(np.uint8), pad)
+        m8 = cv2.morphologyEx(m8, cv2.MORPH_CLOSE, _disk(r_close))[pad:-pad, pad:-pad]
+        mask = m8.astype(bool)
+    if settings.dilate_px > 0:
+        mask = cv2.dilate(mask.astype(np.uint8), _disk(settings.dilate_px)).astype(bool)
+    info = {"threshold_log10": float(t), "otsu_log10": float(t_otsu), "coverage": float(mask.mean())}
+    return mask, info
+
+
+def list_linear_stems(linear_dir: str | os.PathLike) -> list[str]:
+    """Stems of the linear images ``<stem>.exr`` in ``linear_dir`` (sorted)."""
+    linear_dir = Path(linear_dir)
+    stems = sorted(p.stem for p in linear_dir.glob("*.exr") if not p.name.startswith("."))
+    if not stems:
+        raise MaskError(f"{linear_dir}: no linear images (<stem>.exr); run the linearize stage first")
+    return stems
+
+
+def run_masks(
+    linear_dir: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    settings: MaskSettings = MaskSettings(),
+    given_dir: str | os.PathLike | None = None,
+    stems: list[str] | None = None,
+) -> dict:
+    """Write ``out_dir/<stem>.png`` for every view and ``out_dir/masks.json`` (per-view info).
+
+    Parameters
+    ----------
+    linear_dir : folder with the linearize stage's ``<stem>.exr``.
+    out_dir : the stage folder ``results/<capture>/masks``; replaced atomically.
+    given_dir : the capture's ``masks/`` folder, if any: ``<stem>.png`` found there is used
+        unchanged (after a size check); views without one get a derived mask.
+    stems : the views; default all ``<stem>.exr`` in ``linear_dir``.
+
+    Returns
+    -------
+    The summary written to ``masks.json``.
+    """
+    linear_dir = Path(linear_dir)
+    stems = list(stems) if stems is not None else list_linear_stems(linear_dir)
+    given = Path(given_dir) if given_dir is not None else None
+    t0 = time.perf_counter()
+    views = {}
+    with atomic_dir(out_dir) as tmp:
+        for stem in stems:
+            exr = linear_dir / f"{stem}.exr"
+            try:
+                img = read_exr(exr)
+            except ImageError as e:
+                raise MaskError(f"{e}; rerun the linearize stage") from e
+            given_png = given / f"{stem}.png" if given is not None else None
+            if given_png is not None and given_png.is_file():
+                mask = read_mask(given_png)
+                if mask.shape != img.shape[:2]:
+                    raise MaskError(
+                        f"{given_png}: mask is {mask.shape[1]}x{mask.shape[0]} but the image is "
+                        f"{img.shape[1]}x{img.shape[0]}; give masks the size of the photos"
+                    )
+                info = {"source": "given", "coverage": float(mask.mean())}
+            else:
+                try:
+                    mask, info = derive_mask(img, settings)
+                except MaskError as e:
+                    raise MaskError(f"{exr}: {e}; provide masks/{stem}.png in the capture") from e
+                info["source"] = "derived"
+            if not settings.min_coverage <= info["coverage"] <= settings.max_coverage:
+                log.warning(
+                    "%s: mask covers %.2f%% of the image; check it (or give masks/%s.png)",
+                    stem, 100 * info["coverage"], stem,
+                )
+            write_mask(tmp / f"{stem}.png", mask)
+            views[stem] = info
+            log.info("%s: %s mask, %.1f%% of the image", stem, info["source"], 100 * info["coverage"])
+        summary = {
+            "views": views,
+            "settings": asdict(settings),
+            "seconds": time.perf_counter() - t0,
+        }
+        (tmp / "masks.json").write_text(json.dumps(summary, indent=1))
+    return summary

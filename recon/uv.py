@@ -1,0 +1,165 @@
+"""Stage ``uv``: a texture atlas for the mesh (DESIGN section 2), by xatlas.
+
+- Components smaller than ``min_component_faces`` faces or ``min_component_area`` of the
+  total area are dropped first (specks make tiny charts that waste atlas space and xatlas
+  time).
+- xatlas packs at ``texture_size`` texels with ``padding`` empty texels between charts and
+  ``bilinear=True``. xatlas may return an atlas larger than asked for; the texel density is
+  then lowered and the atlas packed again until it fits, so the padding holds in texels of
+  the real texture (a bilinear lookup anywhere inside a chart touches only that chart's
+  texels when padding >= 2).
+- Positions keep their topology: xatlas splits vertices at seams, but ``t_pos_idx`` maps back
+  through ``vmapping`` to the unsplit vertices (the mesh stays watertight) and only the UVs
+  (``v_tex``, ``t_tex_idx``) are split.
+- UVs follow the OBJ convention (v up): atlas texel (row i, column j) of the ``texture_size``
+  square map is at u = (j + 0.5)/T, v = 1 - (i + 0.5)/T. The atlas sits in the top-left corner
+  when it is smaller than the map.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from recon.io.atomic import atomic_dir
+from recon.io.mesh import Mesh, MeshError, read_mesh, write_obj
+
+log = logging.getLogger(__name__)
+
+
+class UVError(ValueError):
+    """A mesh that cannot be unwrapped; the message names the input and the fix."""
+
+
+@dataclass(frozen=True)
+class UVSettings:
+    texture_size: int = 1024  # the square texture the atlas is packed for (texels)
+    padding: int = 4  # empty texels between charts (>= 2 for bilinear lookups)
+    min_component_faces: int = 16
+    min_component_area: float = 1e-4  # fraction of the total area
+    max_pack_attempts: int = 6
+
+    def __post_init__(self):
+        if self.texture_size < 16:
+            raise ValueError(f"texture_size must be >= 16, got {self.texture_size}")
+        if self.padding < 2:
+            raise ValueError(f"padding must be >= 2 texels for bilinear lookups, got {self.padding}")
+
+
+def drop_small_components(mesh: Mesh, min_faces: int, min_area_fraction: float) -> tuple[Mesh, int]:
+    """Remove connected components below the thresholds; returns the mesh and how many went."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = mesh.t_pos_idx
+    nv = len(mesh.v_pos)
+    rows = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+    cols = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+    n, label = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(nv, nv)), directed=False)
+    face_label = label[f[:, 0]]
+    area = 0.5 * np.linalg.norm(mesh.face_normals(), axis=1)
+    comp_faces = np.bincount(face_label, minlength=n)
+    comp_area = np.bincount(face_label, weights=area, minlength=n)
+    keep_comp = (comp_faces >= min_faces) & (comp_area >= min_area_fraction * area.sum())
+    present = comp_faces > 0
+    dropped = int((present & ~keep_comp).sum())
+    if not keep_comp.any():
+        raise UVError(f"every component is below {min_faces} faces / {min_area_fraction:.0e} of the area; "
+                      "nothing left to unwrap")
+    f = f[keep_comp[face_label]]
+    used = np.unique(f)
+    remap = np.full(nv, -1)
+    remap[used] = np.arange(len(used))
+    return Mesh(mesh.v_pos[used], remap[f]), dropped
+
+
+def unwrap(mesh: Mesh, settings: UVSettings = UVSettings()) -> tuple[Mesh, dict]:
+    """UV-unwrap ``mesh`` (positions unchanged, UVs split at seams).
+
+    Returns
+    -------
+    mesh : Mesh with ``v_tex (T, 2)`` and ``t_tex_idx (F, 3)``; ``v_pos``/``t_pos_idx`` are the
+        input's (minus dropped components).
+    stats : dict with ``charts``, ``utilization``, ``atlas_width``/``atlas_height`` (texels
+        used in the map), ``texels_per_unit``, ``dropped_components``, ``attempts``.
+    """
+    import xatlas
+
+    if len(mesh.t_pos_idx) == 0:
+        raise UVError("the mesh has no faces")
+    if not np.all(np.isfinite(mesh.v_pos)):
+        raise UVError("the mesh has NaN or Inf vertex positions")
+    mesh, dropped = drop_small_components(mesh, settings.min_component_faces, settings.min_component_area)
+    if dropped:
+        log.info("dropped %d small component(s) before unwrapping", dropped)
+    T = settings.texture_size
+    v32 = mesh.v_pos.astype(np.float32)
+    f32 = mesh.t_pos_idx.astype(np.uint32)
+    tpu = 0.0  # let xatlas choose from the resolution first
+    for attempt in range(1, settings.max_pack_attempts + 1):  # noqa: B007 (reported below)
+        atlas = xatlas.Atlas()
+        atlas.add_mesh(v32, f32)
+        pack = xatlas.PackOptions()
+        pack.resolution = T
+        pack.padding = settings.padding
+        pack.bilinear = True
+        if tpu > 0:
+            pack.texels_per_unit = tpu
+        atlas.generate(xatlas.ChartOptions(), pack)
+        w, h = int(atlas.width), int(atlas.height)
+        if max(w, h) <= T:
+            break
+        tpu = float(atlas.texels_per_unit) * T / max(w, h) * 0.97
+        log.info("atlas %dx%d exceeds %d texels: packing again at %.2f texels per unit", w, h, T, tpu)
+    else:
+        raise UVError(f"xatlas could not fit the charts into {T}x{T} texels in {settings.max_pack_attempts} "
+                      "attempts; raise texture_size or lower padding")
+    vmapping, indices, uv_norm = atlas[0]
+    t_pos = vmapping.astype(np.int64)[indices.astype(np.int64)]
+    if t_pos.shape != mesh.t_pos_idx.shape or not np.array_equal(t_pos, mesh.t_pos_idx):
+        raise UVError("xatlas reordered the faces; cannot map the UVs back to the mesh")
+    texel = uv_norm.astype(np.float64) * np.array([w, h])  # atlas texel coordinates (x right, y down)
+    v_tex = np.stack([texel[:, 0] / T, 1.0 - texel[:, 1] / T], axis=1)
+    out = Mesh(mesh.v_pos, mesh.t_pos_idx, v_tex, indices.astype(np.int64))
+    stats = {
+        "charts": int(atlas.chart_count),
+        "utilization": float(atlas.utilization),
+        "atlas_width": w,
+        "atlas_height": h,
+        "texture_size": T,
+        "padding": settings.padding,
+        "texels_per_unit": float(atlas.texels_per_unit),
+        "dropped_components": dropped,
+        "attempts": attempt,
+        "faces": int(len(out.t_pos_idx)),
+        "uv_vertices": int(len(v_tex)),
+    }
+    return out, stats
+
+
+def run_uv(mesh_path: str | os.PathLike, out_dir: str | os.PathLike, settings: UVSettings = UVSettings()) -> dict:
+    """Write ``out_dir/mesh.obj`` (with UVs) and ``out_dir/uv.json``; ``out_dir`` is replaced atomically."""
+    t0 = time.perf_counter()
+    try:
+        mesh = read_mesh(mesh_path)
+    except MeshError as e:
+        raise UVError(f"{e}; rerun the init_mesh stage") from e
+    try:
+        out, stats = unwrap(mesh, settings)
+    except UVError as e:
+        raise UVError(f"{mesh_path}: {e}") from e
+    stats["seconds"] = time.perf_counter() - t0
+    stats["settings"] = asdict(settings)
+    with atomic_dir(out_dir) as tmp:
+        write_obj(Path(tmp) / "mesh.obj", out)
+        (Path(tmp) / "uv.json").write_text(json.dumps(stats, indent=1))
+    log.info("uv: %d charts, utilization %.1f%%, atlas %dx%d in a %d^2 map, padding %d texels, %.1f s",
+             stats["charts"], 100 * stats["utilization"], stats["atlas_width"], stats["atlas_height"],
+             stats["texture_size"], stats["padding"], stats["seconds"])
+    return stats

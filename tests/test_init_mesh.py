@@ -1,0 +1,119 @@
+import json
+
+import numpy as np
+import pytest
+from _geometry_scene import icosphere, linearize_and_mask, silhouette, synth_capture
+
+from recon import init_mesh as rim
+from recon import metrics
+from recon.io.cameras import Camera, CameraSet, intrinsics, load_cameras, look_at, save_cameras
+from recon.io.images import write_mask
+from recon.io.mesh import Mesh, read_obj, read_ply, write_obj, write_ply
+
+
+def _ring(n=12, res=96, radius=3.0):
+    return CameraSet(tuple(
+        Camera(f"images/{k:02d}.png", res, res, intrinsics(res, res, 40),
+               look_at([radius * np.cos(t), radius * np.sin(t), 1.2 * np.sin(2 * t + 0.3)], [0, 0, 0]))
+        for k, t in enumerate(np.linspace(0, 2 * np.pi, n, endpoint=False))))
+
+
+def _sphere(r=0.5, center=(0.0, 0.0, 0.0)):
+    m = icosphere(4)
+    return Mesh(m.v_pos * r + np.asarray(center), m.t_pos_idx)
+
+
+def test_bilinear_lookup_convention():
+    img = np.arange(12, dtype=np.float32).reshape(3, 4)
+    # pixel (i, j) covers [j, j+1] x [i, i+1]: its center (j + 0.5, i + 0.5) returns it exactly
+    assert rim.bilinear(img, np.array([2.5]), np.array([1.5]))[0] == img[1, 2]
+    assert rim.bilinear(img, np.array([3.0]), np.array([1.5]))[0] == pytest.approx(0.5 * (img[1, 2] + img[1, 3]))
+    assert rim.bilinear(img, np.array([-5.0]), np.array([0.0]))[0] == img[0, 0]  # clamped
+
+
+def test_visual_hull_of_a_sphere_is_closed_and_close():
+    sphere = _sphere(0.5, center=(0.1, -0.05, 0.0))
+    cams = _ring()
+    masks = {c.stem: silhouette(sphere, c) for c in cams}
+    mesh, stats = rim.visual_hull_mesh(cams, masks, rim.InitMeshSettings(resolution=64, target_faces=2000))
+    topo = rim.check_closed_manifold(mesh)
+    assert topo["genus"] == 0 and topo["connected_components_number"] == 1
+    assert 1000 < stats["faces"] < 4000 and not stats["touches_bounds"]
+    r = metrics.chamfer(mesh, sphere, n_samples=20_000)
+    # 12 views on a band: the hull is a little larger than the sphere, never smaller
+    assert r["completeness"] < 0.02 and r["accuracy"] < 0.02
+    assert mesh.volume() >= 0.98 * sphere.volume()
+
+
+def test_silhouette_field_sign_and_distance():
+    sphere = _sphere(0.5)
+    cams = _ring(n=16, res=128)
+    masks = {c.stem: silhouette(sphere, c) for c in cams}
+    grid = rim.Grid(np.array([-0.9, 0.0, 0.0]), 0.1, 19)  # a line of voxels along x
+    pts = grid.points()
+    line = np.flatnonzero((np.abs(pts[:, 1]) < 1e-9) & (np.abs(pts[:, 2]) < 1e-9))
+    field, seen = rim.silhouette_field(cams, masks, grid, margin_px=0.0)
+    f = field.ravel()[line]
+    x = pts[line, 0]
+    assert np.all(f[np.abs(x) < 0.4] > 0) and np.all(f[np.abs(x) > 0.6] < 0)
+    near = np.abs(np.abs(x) - 0.5) < 0.25
+    # inside, the field is the distance to the hull (within the pixel and view-band error)
+    np.testing.assert_allclose(f[near], 0.5 - np.abs(x[near]), atol=0.03)
+    assert seen.max() == 16
+
+
+def test_empty_hull_and_missing_masks_are_errors(tmp_path):
+    cams = _ring(n=4, res=32)
+    masks = {c.stem: np.zeros((32, 32), bool) for c in cams}
+    with pytest.raises(rim.InitMeshError, match="visual hull is empty"):
+        rim.visual_hull_mesh(cams, masks, rim.InitMeshSettings(resolution=16))
+    save_cameras(tmp_path / "cameras.json", cams)
+    (tmp_path / "masks").mkdir()
+    write_mask(tmp_path / "masks" / f"{cams.frames[0].stem}.png", np.ones((32, 32), bool))
+    with pytest.raises(rim.InitMeshError, match=r"masks for 1 of 4 views"):
+        rim.run_init_mesh(tmp_path / "cameras.json", tmp_path / "masks", tmp_path / "init_mesh")
+    write_mask(tmp_path / "masks" / f"{cams.frames[1].stem}.png", np.ones((10, 10), bool))
+    with pytest.raises(rim.InitMeshError, match=r"01\.png: mask is 10x10 but the camera of images/01\.png is 32x32"):
+        rim.run_init_mesh(tmp_path / "cameras.json", tmp_path / "masks", tmp_path / "init_mesh")
+    assert not (tmp_path / "init_mesh").exists()
+
+
+def test_given_mesh_passes_through_or_fails_clearly(tmp_path):
+    good = tmp_path / "init_mesh.ply"
+    write_ply(good, _sphere(0.4))
+    stats = rim.run_init_mesh(tmp_path / "none.json", None, tmp_path / "out", given_mesh=good)
+    assert stats["source"] == "given"
+    assert (tmp_path / "out" / "mesh.ply").read_bytes() == good.read_bytes()
+    # an open mesh (one face removed) is refused with the file named
+    s = _sphere(0.4)
+    holed = tmp_path / "holed.obj"
+    write_obj(holed, Mesh(s.v_pos, s.t_pos_idx[1:]))
+    with pytest.raises(rim.InitMeshError, match=r"holed\.obj is not a watertight two-manifold: 3 boundary edges"):
+        rim.run_init_mesh(None, None, tmp_path / "out2", given_mesh=holed)
+    inward = tmp_path / "inward.obj"
+    write_obj(inward, Mesh(s.v_pos, s.t_pos_idx[:, ::-1]))
+    with pytest.raises(rim.InitMeshError, match="inward normals"):
+        rim.run_init_mesh(None, None, tmp_path / "out2", given_mesh=inward)
+    assert not (tmp_path / "out2").exists()
+
+
+def test_initial_mesh_of_a_synthetic_capture(tmp_path_factory):
+    """Known cameras (gt/cameras.json) and masks derived from the photos: DESIGN 5 metrics."""
+    capture = synth_capture(tmp_path_factory.getbasetemp())
+    results = tmp_path_factory.mktemp("hull")
+    _, masks = linearize_and_mask(capture, results)
+    out = results / "init_mesh"
+    stats = rim.run_init_mesh(capture / "gt" / "cameras.json", masks, out)
+    mesh = read_ply(out / "mesh.ply")
+    topo = rim.check_closed_manifold(mesh)
+    assert topo["boundary_edges"] == 0 and topo["is_mesh_two_manifold"]
+    assert 2000 <= len(mesh.t_pos_idx) <= 10000  # coarse: a few thousand faces
+    gt = read_obj(capture / "gt" / "mesh.obj")
+    r = metrics.chamfer(mesh, gt)
+    print(f"\nvisual hull: accuracy {r['accuracy']:.4f}, completeness {r['completeness']:.4f}, "  # noqa: T201
+          f"{len(mesh.t_pos_idx)} faces, {stats['seconds']:.1f} s")
+    assert r["accuracy"] < 0.03 and r["completeness"] < 0.03
+    assert json.loads((out / "init_mesh.json").read_text())["topology"]["genus"] == topo["genus"]
+    # the mesh lives in the cameras' frame and [-1, 1]^3 holds it
+    assert np.abs(mesh.v_pos).max() < 1.0
+    assert len(load_cameras(capture / "gt" / "cameras.json")) == stats["views_with_masks"]

@@ -1,0 +1,122 @@
+import json
+
+import numpy as np
+import pytest
+from _geometry_scene import make_scene, silhouette
+
+from recon import masks as rm
+from recon.io.images import read_mask, write_exr, write_mask
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_scene(tmp_path_factory.mktemp("masks_scene"), n_views=3, res=192)
+
+
+def _iou(a, b):
+    return (a & b).sum() / (a | b).sum()
+
+
+def test_otsu_splits_two_modes():
+    rng = np.random.default_rng(0)
+    v = np.concatenate([rng.normal(-4, 0.2, 5000), rng.normal(-1, 0.2, 5000)])
+    assert -3.0 < rm.otsu_threshold(v) < -2.0
+    assert rm.otsu_threshold(np.full(10, 3.0)) == 3.0
+
+
+def test_derived_mask_matches_the_silhouette(scene):
+    for cam in scene["cameras"]:
+        from recon.io.images import read_exr
+
+        img = read_exr(scene["linear"] / f"{cam.stem}.exr")
+        gt = silhouette(scene["mesh"], cam)
+        mask, info = rm.derive_mask(img)
+        assert mask.dtype == bool and mask.shape == gt.shape
+        # never loses object (the visual hull would carve it away); only partial edge pixels extra
+        assert (gt & ~mask).sum() <= 0.002 * gt.sum()
+        assert _iou(mask, gt) > 0.97
+        assert info["threshold_log10"] <= info["otsu_log10"]
+        assert 0 < info["coverage"] < 1
+
+
+def test_derived_mask_with_noise_speckles_and_dark_spots(scene):
+    from recon.io.images import read_exr
+
+    rng = np.random.default_rng(1)
+    cam = scene["cameras"].frames[0]
+    gt = silhouette(scene["mesh"], cam)
+    img = read_exr(scene["linear"] / f"{cam.stem}.exr")
+    img = img + rng.normal(0, 2e-3, img.shape).astype(np.float32)  # read noise
+    ys, xs = rng.integers(0, img.shape[0], 30), rng.integers(0, img.shape[1], 30)
+    img[ys, xs] = 0.5  # hot pixels in the background
+    inside = np.argwhere(gt)
+    cy, cx = inside[len(inside) // 2]
+    img[cy - 2:cy + 3, cx - 2:cx + 3] = 0.0  # a small black spot on the object
+    mask, _ = rm.derive_mask(np.maximum(img, 0))
+    assert mask[cy, cx]  # small hole filled
+    assert _iou(mask, gt) > 0.95
+    assert not mask[ys, xs][~gt[ys, xs]].any()  # speckles removed
+
+
+def test_large_hole_is_kept_small_hole_filled():
+    h = w = 200
+    j, i = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    r = np.hypot(i - 100, j - 100)
+    img = np.where(r < 80, 0.5, 0.0).astype(np.float32)
+    img[r < 30] = 0.0  # a through-hole (a ring): 14% of the object
+    img[40:44, 98:102] = 0.0  # a dark spot: a texture hole
+    img = np.repeat(img[:, :, None], 3, axis=2)
+    mask, _ = rm.derive_mask(img, rm.MaskSettings(close_radius=0.0))
+    assert not mask[100, 100]
+    assert mask[42, 100]
+
+
+def test_black_image_is_an_error():
+    with pytest.raises(rm.MaskError, match="black"):
+        rm.derive_mask(np.zeros((16, 16, 3), np.float32))
+    with pytest.raises(rm.MaskError, match="shape"):
+        rm.derive_mask(np.zeros((16, 16, 2), np.float32))
+
+
+def test_settings_are_checked():
+    with pytest.raises(ValueError, match="floor"):
+        rm.MaskSettings(floor=0.0)
+    with pytest.raises(ValueError, match="max_hole_fraction"):
+        rm.MaskSettings(max_hole_fraction=2.0)
+
+
+def test_run_masks_given_and_derived(scene, tmp_path):
+    given = tmp_path / "given"
+    cam0 = scene["cameras"].frames[0]
+    box = np.zeros((cam0.height, cam0.width), bool)
+    box[10:50, 20:80] = True
+    write_mask(given / f"{cam0.stem}.png", box)
+    out = tmp_path / "masks"
+    summary = rm.run_masks(scene["linear"], out, given_dir=given)
+    stems = [c.stem for c in scene["cameras"]]
+    assert sorted(summary["views"]) == stems
+    assert summary["views"][cam0.stem]["source"] == "given"
+    assert all(summary["views"][s]["source"] == "derived" for s in stems[1:])
+    np.testing.assert_array_equal(read_mask(out / f"{cam0.stem}.png"), box)
+    assert json.loads((out / "masks.json").read_text())["views"].keys() == summary["views"].keys()
+    assert sorted(p.name for p in out.iterdir()) == sorted([f"{s}.png" for s in stems] + ["masks.json"])
+
+
+def test_run_masks_wrong_size_leaves_nothing(scene, tmp_path):
+    given = tmp_path / "given"
+    cam0 = scene["cameras"].frames[-1]
+    write_mask(given / f"{cam0.stem}.png", np.ones((10, 10), bool))
+    out = tmp_path / "masks"
+    with pytest.raises(rm.MaskError, match=rf"{cam0.stem}\.png: mask is 10x10 but the image is"):
+        rm.run_masks(scene["linear"], out, given_dir=given)
+    assert not out.exists()
+    assert list(tmp_path.iterdir()) == [given]
+
+
+def test_run_masks_black_view_names_the_file(tmp_path):
+    lin = tmp_path / "linear"
+    write_exr(lin / "a.exr", np.zeros((8, 8, 3), np.float32))
+    with pytest.raises(rm.MaskError, match=r"a\.exr: .*provide masks/a\.png"):
+        rm.run_masks(lin, tmp_path / "masks")
+    with pytest.raises(rm.MaskError, match="no linear images"):
+        rm.run_masks(tmp_path / "empty", tmp_path / "masks")

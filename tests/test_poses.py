@@ -1,0 +1,315 @@
+import json
+import re
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from _geometry_scene import icosphere, linearize_and_mask, silhouette, synth_capture
+
+from recon import metrics
+from recon import poses as rp
+from recon.io.cameras import Camera, CameraSet, intrinsics, load_cameras, look_at, save_cameras
+from recon.io.images import read_exr, read_ldr, read_mask, srgb_to_linear, write_exr, write_mask, write_png
+from recon.io.mesh import Mesh, read_obj, write_ply
+
+
+def _leftovers(folder):
+    return [p.name for p in folder.iterdir() if p.name.startswith(".")]
+
+
+# ---------------------------------------------------------------------------------------------
+# settings, pass-through
+# ---------------------------------------------------------------------------------------------
+def test_settings_are_checked():
+    with pytest.raises(ValueError, match="matcher"):
+        rp.PoseSettings(matcher="vocab")
+    with pytest.raises(ValueError, match="mapper"):
+        rp.PoseSettings(mapper="hierarchical")
+    with pytest.raises(ValueError, match="min_registered"):
+        rp.PoseSettings(min_registered=2)
+
+
+def _tiny_views(folder, n=3, w=16, h=12):
+    for i in range(n):
+        write_exr(folder / f"{i:04d}.exr", np.full((h, w, 3), 0.1 * (i + 1), np.float32))
+        write_mask(folder / f"{i:04d}.sat.png", np.zeros((h, w), bool))
+    return CameraSet(tuple(
+        Camera(f"images/{i:04d}.dng", w, h, intrinsics(w, h, 40), look_at([3 * np.cos(i), 3 * np.sin(i), 1], [0, 0, 0]))
+        for i in range(n)), light_intensity=2.5)
+
+
+def test_given_cameras_pass_through(tmp_path):
+    lin = tmp_path / "linear"
+    cams = _tiny_views(lin)
+    given = tmp_path / "capture" / "cameras.json"
+    save_cameras(given, cams)
+    masks = tmp_path / "masks"
+    for c in cams:
+        write_mask(masks / f"{c.stem}.png", np.ones((c.height, c.width), bool))
+    out = tmp_path / "poses"
+    diag = rp.run_poses(lin, out, masks_dir=masks, given_cameras=given)
+    assert diag["source"] == "given" and diag["registered"] == 3
+    assert (out / "cameras.json").read_bytes() == given.read_bytes()  # untouched
+    for c in cams:
+        np.testing.assert_array_equal(read_exr(out / "undistorted" / f"{c.stem}.exr"), read_exr(lin / f"{c.stem}.exr"))
+        assert (out / "undistorted" / "masks" / f"{c.stem}.png").is_file()
+        assert (out / "undistorted" / f"{c.stem}.sat.png").is_file()
+    assert not (out / "sparse").exists()  # no SfM ran
+    assert json.loads((out / "poses.json").read_text())["source"] == "given"
+
+
+def test_given_cameras_with_wrong_size_fail_cleanly(tmp_path):
+    lin = tmp_path / "linear"
+    cams = _tiny_views(lin)
+    bad = CameraSet((Camera(cams.frames[0].image, 20, 12, cams.frames[0].K, cams.frames[0].world_to_camera),)
+                    + cams.frames[1:])
+    given = tmp_path / "cameras.json"
+    save_cameras(given, bad)
+    with pytest.raises(rp.PoseError, match=r"cameras\.json: 'images/0000\.dng' is 20x12 in cameras\.json but the image is 16x12"):
+        rp.run_poses(lin, tmp_path / "poses", given_cameras=given)
+    assert not (tmp_path / "poses").exists() and not _leftovers(tmp_path)
+    given.write_text('{"frames": []}')
+    with pytest.raises(rp.PoseError, match="non-empty list 'frames'.*delete it to run SfM"):
+        rp.run_poses(lin, tmp_path / "poses", given_cameras=given)
+
+
+def test_focal_prior_from_linear_json(tmp_path):
+    p = tmp_path / "linear.json"
+    p.write_text(json.dumps({"images": {"a": {"source": "images/a.dng", "focal_length_px": 1000.0},
+                                        "b": {"source": "images/b.dng", "focal_length_px": 1004.0}}}))
+    assert rp.focal_prior(p, ["a", "b"]) == pytest.approx(1002.0)
+    assert rp._image_names(p, ["a", "b"]) == {"a": "images/a.dng", "b": "images/b.dng"}
+    p.write_text(json.dumps({"images": {"a": {"focal_length_px": 1000.0}, "b": {"focal_length_px": 1100.0}}}))
+    assert rp.focal_prior(p, ["a", "b"]) is None  # a zoom changed: no shared prior
+    p.write_text(json.dumps({"images": {"a": {"focal_length_px": None}}}))
+    assert rp.focal_prior(p, ["a"]) is None
+    assert rp.focal_prior(None, ["a"]) is None
+
+
+# ---------------------------------------------------------------------------------------------
+# undistortion and the object frame
+# ---------------------------------------------------------------------------------------------
+def _pattern(xy_normalized):
+    x, y = xy_normalized[:, 0], xy_normalized[:, 1]
+    return 0.5 + 0.25 * np.sin(20 * x + 1.0) + 0.25 * np.cos(17 * y - 0.5)
+
+
+def test_undistortion_matches_the_pinhole_image():
+    import pycolmap
+
+    cam = pycolmap.Camera.create_from_model_name(1, "SIMPLE_RADIAL", 100.0, 64, 48)
+    cam.params = [100.0, 32.0, 24.0, 0.15]
+    pinhole = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), cam)
+    # the distorted photo of a pattern defined on the normalized image plane
+    j, i = np.meshgrid(np.arange(64) + 0.5, np.arange(48) + 0.5)
+    distorted = _pattern(cam.cam_from_img(np.stack([j.ravel(), i.ravel()], 1))).reshape(48, 64)
+    und = rp._remap(distorted.astype(np.float32), rp._undistort_maps(cam, pinhole))
+    jp, ip = np.meshgrid(np.arange(pinhole.width) + 0.5, np.arange(pinhole.height) + 0.5)
+    expected = _pattern(pinhole.cam_from_img(np.stack([jp.ravel(), ip.ravel()], 1))).reshape(und.shape)
+    inner = (slice(3, -3), slice(3, -3))  # away from the blank border
+    err = np.abs(und[inner] - expected[inner])
+    assert err.max() < 0.02, err.max()  # bilinear resampling only; half a pixel off would be ~0.1
+    assert pinhole.model_name == "PINHOLE" and pinhole.focal_length_x == pinhole.focal_length_y
+
+
+def test_object_frame_centers_scales_and_levels():
+    rng = np.random.default_rng(0)
+    # a "COLMAP frame": object at c0, world up along u (not z), arbitrary scale
+    c0 = np.array([5.0, -2.0, 3.0])
+    u = np.array([0.3, -0.9, 0.3])
+    u /= np.linalg.norm(u)
+    a = np.cross(u, [1.0, 0.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(u, a)
+    frames = []
+    for k in range(16):
+        ang = 2 * np.pi * k / 16
+        eye = c0 + 7.0 * (np.cos(ang) * a + np.sin(ang) * b) + 2.0 * u
+        frames.append(Camera(f"images/{k:02d}.png", 64, 64, intrinsics(64, 64, 40), look_at(eye, c0, up=u)))
+    cams = CameraSet(tuple(frames))
+    # points on an ellipsoid, longest along a (2.0), then b (1.2), then u (0.8)
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    pts = c0 + d[:, :1] * 1.0 * a + d[:, 1:2] * 0.6 * b + d[:, 2:3] * 0.4 * u
+    s = rp.PoseSettings(bbox_percentile=0.0, margin=0.1, hull_resolution=0)
+    sim, info = rp.object_frame(cams, pts, np.ones(len(pts), bool), {}, s)
+    q = sim.apply(pts)
+    np.testing.assert_allclose(sim.apply(c0[None])[0], 0.0, atol=0.02)
+    assert np.abs(q).max(0)[0] == pytest.approx(0.9, abs=0.01)  # longest axis fills 1 - margin
+    np.testing.assert_allclose(sim.rotation @ u, [0, 0, 1], atol=1e-6)  # z up
+    assert abs((sim.rotation @ a)[0]) == pytest.approx(1.0, abs=1e-3)  # x along the longest axis
+    assert np.linalg.det(sim.rotation) == pytest.approx(1.0)
+    # the cameras seen in the object frame: still looking at the (new) origin, same images
+    moved = rp._rotate_cameras(cams, sim)
+    for c0_, c1 in zip(cams, moved, strict=True):
+        xy0, _ = c0_.project(pts[:5])
+        xy1, _ = c1.project(q[:5])
+        np.testing.assert_allclose(xy0, xy1, atol=1e-6)
+
+
+def test_object_frame_box_from_the_visual_hull():
+    """Sparse points on one side only: the masks' hull still gives the whole object's box."""
+    sphere = Mesh(icosphere(3).v_pos * 0.5, icosphere(3).t_pos_idx)
+    frames = [Camera(f"images/{k:02d}.png", 96, 96, intrinsics(96, 96, 40),
+                     look_at([3 * np.cos(t), 3 * np.sin(t), 1.0 + 0.5 * np.sin(3 * t)], [0, 0, 0]))
+              for k, t in enumerate(np.linspace(0, 2 * np.pi, 12, endpoint=False))]
+    cams = CameraSet(tuple(frames))
+    masks = {c.stem: silhouette(sphere, c) for c in cams}
+    pts = sphere.v_pos[sphere.v_pos[:, 0] > 0.3]  # a cap: its box is far too small
+    sim, info = rp.object_frame(cams, pts, np.ones(len(pts), bool), masks, rp.PoseSettings(margin=0.1))
+    assert info["box_source"].startswith("visual hull")
+    q = sim.apply(sphere.v_pos)
+    assert np.abs(q).max() < 1.0  # the whole sphere is inside the cube
+    assert np.abs(q).max() > 0.8  # ... and fills it
+    np.testing.assert_allclose(q.mean(0), 0.0, atol=0.05)
+
+
+# ---------------------------------------------------------------------------------------------
+# SfM
+# ---------------------------------------------------------------------------------------------
+def test_too_few_registered_views_is_a_clear_error(tmp_path):
+    rng = np.random.default_rng(5)
+    lin = tmp_path / "linear"
+    for k in range(4):  # four unrelated random textures: nothing can match
+        img = np.repeat(rng.random((24, 32)), 4, 0).repeat(4, 1)
+        write_exr(lin / f"v{k}.exr", np.repeat(img[:, :, None], 3, 2).astype(np.float32))
+    out = tmp_path / "poses"
+    with pytest.raises(rp.PoseError) as e:
+        rp.run_poses(lin, out, rp.PoseSettings(mapping_trials=2))
+    msg = str(e.value)
+    assert "only 0 of 4 views could be registered" in msg
+    for k in range(4):
+        assert re.search(rf"  v{k}: .*(no verified match|features)", msg), msg
+    assert "What to try" in msg and "cameras.json" in msg
+    assert not out.exists() and not _leftovers(tmp_path)  # nothing partial
+
+
+@pytest.fixture(scope="module")
+def synthetic_sfm(tmp_path_factory):
+    capture = synth_capture(tmp_path_factory.getbasetemp())
+    assert not (capture / "cameras.json").exists()
+    results = tmp_path_factory.mktemp("sfm")
+    linear, masks = linearize_and_mask(capture, results)
+    t0 = time.perf_counter()
+    diag = rp.run_poses(linear, results / "poses", masks_dir=masks, linear_json=linear / "linear.json")
+    diag["test_seconds"] = time.perf_counter() - t0
+    return capture, results, diag
+
+
+def test_sfm_recovers_synthetic_cameras(synthetic_sfm):
+    capture, results, diag = synthetic_sfm
+    true = load_cameras(capture / "gt" / "cameras.json")
+    est = load_cameras(results / "poses" / "cameras.json")
+    n = len(true)
+    assert diag["source"] == "sfm" and diag["registered"] == len(est)
+    assert len(est) >= 0.95 * n, diag["unregistered"]
+    gt = read_obj(capture / "gt" / "mesh.obj")
+    size = float(np.max(gt.bbox()[1] - gt.bbox()[0]))
+    err = metrics.pose_errors(est, true)
+    print(f"\nSfM {len(est)}/{n} registered, mean rotation {err['mean_rotation_deg']:.3f} deg, "  # noqa: T201
+          f"mean center {100 * err['mean_center'] / size:.2f}% of the object, "
+          f"reprojection {diag['mean_reprojection_error_px']:.3f} px, {diag['test_seconds']:.1f} s")
+    assert err["mean_rotation_deg"] < 0.5
+    assert err["mean_center"] < 0.01 * size
+    assert diag["mean_reprojection_error_px"] < 1.0
+
+
+def test_sfm_outputs_follow_the_contract(synthetic_sfm):
+    capture, results, diag = synthetic_sfm
+    out = results / "poses"
+    est = load_cameras(out / "cameras.json")
+    true = load_cameras(capture / "gt" / "cameras.json")
+    # one pinhole camera, image names of the capture
+    K0 = est.frames[0].K
+    for c in est:
+        np.testing.assert_array_equal(c.K, K0)
+        assert c.image.startswith("images/") and c.image.endswith(".exr")
+        assert read_exr(out / "undistorted" / f"{c.stem}.exr").shape[:2] == (c.height, c.width)
+        assert read_mask(out / "undistorted" / "masks" / f"{c.stem}.png").shape == (c.height, c.width)
+    assert K0[0, 0] == pytest.approx(true.frames[0].K[0, 0], rel=0.1)
+    # the object sits centered inside [-1, 1]^3 of the estimated frame
+    sim = metrics.align_cameras(est, true).inverse()  # true frame -> estimated frame
+    gt = read_obj(capture / "gt" / "mesh.obj")
+    lo, hi = Mesh(sim.apply(gt.v_pos), gt.t_pos_idx).bbox()
+    assert np.all(lo > -1.0) and np.all(hi < 1.0), (lo, hi)
+    assert np.max(hi - lo) > 1.2  # and fills it
+    assert np.linalg.norm(0.5 * (lo + hi)) < 0.15
+    # z is up: the true up (+z) maps to +z
+    assert (sim.rotation @ [0, 0, 1.0])[2] > 0.95
+    # the recorded similarity maps the COLMAP model onto cameras.json
+    frame = json.loads((out / "frame.json").read_text())
+    assert np.allclose(est.extra["colmap_to_object"], frame["colmap_to_object"]["matrix"])
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(out / "sparse")
+    M = np.asarray(frame["colmap_to_object"]["matrix"])
+    by_stem = est.by_stem()
+    for i in rec.reg_image_ids():
+        im = rec.images[i]
+        c_obj = M[:3, :3] @ im.projection_center() + M[:3, 3]
+        np.testing.assert_allclose(c_obj, by_stem[im.name[:-4]].center, atol=1e-6)
+    assert {"registered", "unregistered", "mean_reprojection_error_px", "timings", "trials"} <= set(diag)
+    assert json.loads((out / "poses.json").read_text())["registered"] == diag["registered"]
+
+
+def test_sfm_on_real_photos(shared_data, tmp_path):
+    """11 JPEGs of the Chateau de Sceaux (openMVG test set), at a third of their size."""
+    import cv2
+
+    src = shared_data / "real" / "sceaux"
+    K = np.loadtxt(src / "K.txt")
+    factor = 0.35
+    lin = tmp_path / "linear"
+    entries = {}
+    for p in sorted(src.glob("*.JPG")):
+        img, _ = read_ldr(p)
+        h, w = img.shape[:2]
+        img = cv2.resize(img, (round(w * factor), round(h * factor)), interpolation=cv2.INTER_AREA)
+        write_exr(lin / f"{p.stem}.exr", srgb_to_linear(img))
+        entries[p.stem] = {"source": f"images/{p.name}", "focal_length_px": K[0, 0] * factor}
+    (lin / "linear.json").write_text(json.dumps({"images": entries}))
+    t0 = time.perf_counter()
+    diag = rp.run_poses(lin, tmp_path / "poses", rp.PoseSettings(max_num_features=4096),
+                        linear_json=lin / "linear.json")
+    dt = time.perf_counter() - t0
+    print(f"\nsceaux: {diag['registered']}/11 registered, {diag['mean_reprojection_error_px']:.3f} px, "  # noqa: T201
+          f"f = {diag['camera']['params'][0]:.1f} px (K.txt: {K[0, 0] * factor:.1f}), {dt:.1f} s")
+    assert diag["registered"] == 11 and not diag["unregistered"]
+    assert diag["mean_reprojection_error_px"] < 1.0
+    assert diag["camera"]["params"][0] == pytest.approx(K[0, 0] * factor, rel=0.05)
+    cams = load_cameras(tmp_path / "poses" / "cameras.json")
+    assert [c.image for c in cams] == [f"images/{p.name}" for p in sorted(src.glob("*.JPG"))]
+
+
+# ---------------------------------------------------------------------------------------------
+# Snakemake: given cameras.json / init_mesh.ply skip the poses / init_mesh rules
+# ---------------------------------------------------------------------------------------------
+def _planned_jobs(repo_root, captures, results, target):
+    r = subprocess.run(
+        [sys.executable, "-m", "snakemake", "-n", "--cores", "1", "--config", f"captures={captures}",
+         f"results={results}", "--", target],
+        cwd=repo_root, capture_output=True, text=True, timeout=300,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    text = r.stdout + r.stderr
+    table = text[text.index("Job stats:"):]
+    return {m.group(1) for m in re.finditer(r"^(\w+)\s+\d+$", table, re.M)} - {"total"}
+
+
+def test_snakemake_skips_poses_and_init_mesh_when_given(repo_root, tmp_path):
+    caps = tmp_path / "captures"
+    for name in ("given", "cams_only", "sfm"):
+        for k in range(3):
+            write_png(caps / name / "images" / f"{k:04d}.png", np.full((8, 8, 3), 0.5))
+    cams = _tiny_views(tmp_path / "scratch", w=8, h=8)
+    for name in ("given", "cams_only"):
+        save_cameras(caps / name / "cameras.json", cams)
+    write_ply(caps / "given" / "init_mesh.ply", icosphere(1))
+    res = tmp_path / "results"
+    jobs = {name: _planned_jobs(repo_root, caps, res, f"{res}/{name}/uv/mesh.obj")
+            for name in ("given", "cams_only", "sfm")}
+    assert jobs["given"] == {"uv"}
+    assert jobs["cams_only"] == {"linearize", "masks", "init_mesh", "uv"}
+    assert jobs["sfm"] == {"linearize", "masks", "poses", "init_mesh", "uv"}

@@ -1,0 +1,105 @@
+import json
+
+import numpy as np
+import pytest
+from _geometry_scene import blob_mesh, icosphere
+
+from recon import uv as ruv
+from recon.io.mesh import Mesh, read_obj, write_ply
+
+
+@pytest.fixture(scope="module")
+def blob():
+    return blob_mesh(subdivisions=4)  # 5120 faces
+
+
+def _chart_of_faces(m: Mesh) -> np.ndarray:
+    """Chart id per face: faces connected through shared UV vertices."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = m.t_tex_idx
+    n = len(m.v_tex)
+    rows = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+    cols = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+    _, label = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
+    return label[f[:, 0]]
+
+
+def _bilinear_texels(m: Mesh, size: int, per_edge: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Texels (flat index) touched by bilinear lookups at dense samples of every face, and the
+    face's chart."""
+    chart = _chart_of_faces(m)
+    k = np.arange(per_edge + 1)
+    a, b = np.meshgrid(k, k, indexing="ij")
+    keep = a + b <= per_edge
+    bary = np.stack([a[keep], b[keep], per_edge - a[keep] - b[keep]], 1) / per_edge  # (S, 3)
+    uv = np.einsum("sk,fkd->fsd", bary, m.v_tex[m.t_tex_idx])  # (F, S, 2)
+    x = uv[..., 0] * size - 0.5  # texel centers at integers
+    y = (1.0 - uv[..., 1]) * size - 0.5
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    texels, owners = [], []
+    for dx in (0, 1):
+        for dy in (0, 1):
+            tx = np.clip(x0 + dx, 0, size - 1)
+            ty = np.clip(y0 + dy, 0, size - 1)
+            texels.append((ty * size + tx).ravel())
+            owners.append(np.repeat(chart, uv.shape[1]))
+    return np.concatenate(texels), np.concatenate(owners)
+
+
+@pytest.mark.parametrize("size", [256, 1024])
+def test_unwrap_keeps_geometry_and_pads_charts(blob, size):
+    out, stats = ruv.unwrap(blob, ruv.UVSettings(texture_size=size, padding=2))
+    # positions untouched: same vertices, same faces (the mesh stays watertight)
+    np.testing.assert_array_equal(out.t_pos_idx, blob.t_pos_idx)
+    np.testing.assert_array_equal(out.v_pos, blob.v_pos)
+    assert out.has_uv and out.t_tex_idx.shape == out.t_pos_idx.shape
+    assert np.all(np.isfinite(out.v_tex))
+    assert out.v_tex.min() >= 0 and out.v_tex.max() <= 1
+    assert stats["charts"] >= 1 and 0.3 < stats["utilization"] <= 1
+    assert max(stats["atlas_width"], stats["atlas_height"]) <= size
+    # UV triangles are not degenerate
+    t = out.v_tex[out.t_tex_idx]
+    e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    assert (area > 0).all()
+    # bilinear lookups anywhere in a chart never touch a texel another chart uses
+    texels, owners = _bilinear_texels(out, size)
+    order = np.lexsort((owners, texels))
+    texels, owners = texels[order], owners[order]
+    same_texel = texels[1:] == texels[:-1]
+    assert not np.any(same_texel & (owners[1:] != owners[:-1]))
+    assert stats["charts"] == len(np.unique(_chart_of_faces(out)))
+
+
+def test_small_components_are_dropped(blob):
+    speck = icosphere(0)  # 20 faces
+    speck = Mesh(speck.v_pos * 0.01 + 2.0, speck.t_pos_idx + len(blob.v_pos))
+    both = Mesh(np.concatenate([blob.v_pos, speck.v_pos]), np.concatenate([blob.t_pos_idx, speck.t_pos_idx]))
+    out, stats = ruv.unwrap(both, ruv.UVSettings(texture_size=256, min_component_faces=32))
+    assert stats["dropped_components"] == 1
+    assert len(out.t_pos_idx) == len(blob.t_pos_idx)
+    assert out.v_pos.max() < 1.5  # the speck at (2, 2, 2) is gone
+
+
+def test_run_uv_writes_obj_with_uvs(blob, tmp_path):
+    src = tmp_path / "mesh.ply"
+    write_ply(src, blob)
+    stats = ruv.run_uv(src, tmp_path / "uv", ruv.UVSettings(texture_size=256))
+    back = read_obj(tmp_path / "uv" / "mesh.obj")
+    assert back.has_uv and len(back.t_pos_idx) == len(blob.t_pos_idx)
+    np.testing.assert_allclose(back.v_pos, blob.v_pos, atol=1e-6)  # PLY is float32
+    assert json.loads((tmp_path / "uv" / "uv.json").read_text())["charts"] == stats["charts"]
+
+
+def test_errors(tmp_path):
+    with pytest.raises(ValueError, match="padding must be >= 2"):
+        ruv.UVSettings(padding=1)
+    with pytest.raises(ruv.UVError, match="no faces"):
+        ruv.unwrap(Mesh(np.zeros((3, 3)), np.zeros((0, 3))))
+    with pytest.raises(ruv.UVError, match="nothing left"):
+        ruv.unwrap(icosphere(0), ruv.UVSettings(min_component_faces=100))
+    with pytest.raises(ruv.UVError, match=r"missing\.ply: file not found; rerun the init_mesh stage"):
+        ruv.run_uv(tmp_path / "missing.ply", tmp_path / "uv")
+    assert not (tmp_path / "uv").exists()

@@ -1,0 +1,32 @@
+# Masks (DESIGN section 2): one object mask per view, results/<capture>/masks/<stem>.png.
+# The capture's masks/<stem>.png are used as given; other views get a mask derived from the
+# linear image (flash falloff: see recon.masks). recon.masks.run_masks replaces the whole
+# masks/ folder atomically; masks.json (per-view source and coverage) is the declared output.
+
+
+def get_given_masks(wildcards):
+    """The capture's own mask files (tracked, so editing one reruns the stage)."""
+    folder = capture_dir(wildcards.capture) / "masks"
+    return sorted(str(p) for p in folder.glob("*.png")) if folder.is_dir() else []
+
+
+def get_given_masks_dir(wildcards):
+    return str(capture_dir(wildcards.capture) / "masks") if has_masks(wildcards.capture) else ""
+
+
+rule masks:
+    input:
+        linear=f"{RESULTS}/{{capture}}/linear/linear.json",
+        given=get_given_masks,
+    output:
+        summary=f"{RESULTS}/{{capture}}/masks/masks.json",
+    log:
+        f"{RESULTS}/{{capture}}/logs/masks.log",
+    benchmark:
+        f"{RESULTS}/{{capture}}/benchmarks/masks.tsv"
+    params:
+        given_dir=get_given_masks_dir,
+        stems=get_image_stems,
+        settings=get_settings("masks"),
+    script:
+        "../scripts/masks.py"

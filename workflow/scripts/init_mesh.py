@@ -1,0 +1,16 @@
+"""Snakemake adapter of the init_mesh stage: calls recon.init_mesh.run_init_mesh (no logic here)."""
+
+from pathlib import Path
+
+from recon.config import build_settings
+from recon.init_mesh import InitMeshSettings, run_init_mesh
+from recon.logs import configure
+
+configure(snakemake.log[0])  # noqa: F821 (injected by Snakemake)
+run_init_mesh(
+    snakemake.input.cameras,  # noqa: F821
+    snakemake.params.masks_dir,  # noqa: F821
+    Path(snakemake.output.mesh).parent,  # noqa: F821
+    build_settings(InitMeshSettings, snakemake.params.settings),  # noqa: F821
+    given_mesh=snakemake.params.given or None,  # noqa: F821
+)

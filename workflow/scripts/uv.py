@@ -1,0 +1,14 @@
+"""Snakemake adapter of the uv stage: calls recon.uv.run_uv (no logic here)."""
+
+from pathlib import Path
+
+from recon.config import build_settings
+from recon.logs import configure
+from recon.uv import UVSettings, run_uv
+
+configure(snakemake.log[0])  # noqa: F821 (injected by Snakemake)
+run_uv(
+    snakemake.input.mesh,  # noqa: F821
+    Path(snakemake.output.mesh).parent,  # noqa: F821
+    build_settings(UVSettings, snakemake.params.settings),  # noqa: F821
+)
