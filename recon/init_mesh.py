@@ -97,18 +97,22 @@ def _signed_distance_px(mask: np.ndarray) -> np.ndarray:
 
 
 def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of an (H, W) map sampled at pixel centers, at continuous pixel
+    """Bilinear lookup of an (H, W) float map sampled at pixel centers, at continuous pixel
     coordinates ``x`` (column) and ``y`` (row) (pixel (i, j) covers [j, j+1] x [i, i+1]);
-    clamped at the border."""
-    h, w = image.shape
-    px = np.clip(x - 0.5, 0, w - 1)
-    py = np.clip(y - 0.5, 0, h - 1)
-    x0 = np.minimum(px.astype(np.int64), w - 2) if w > 1 else np.zeros(len(px), np.int64)
-    y0 = np.minimum(py.astype(np.int64), h - 2) if h > 1 else np.zeros(len(py), np.int64)
-    fx, fy = px - x0, py - y0
-    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    return ((1 - fy) * ((1 - fx) * image[y0, x0] + fx * image[y0, x1])
-            + fy * ((1 - fx) * image[y1, x0] + fx * image[y1, x1]))
+    clamped at the border. ``cv2.remap`` does the work (its maps are limited to 32767 rows, so
+    the query points are laid out 1024 to a row); positions are resolved to 1/32 pixel."""
+    import cv2
+
+    n = len(x)
+    width = 1024
+    rows = max(1, -(-n // width))
+    mx = np.zeros(rows * width, np.float32)
+    my = np.zeros(rows * width, np.float32)
+    mx[:n] = np.asarray(x, np.float32) - 0.5  # cv2 addresses pixel centers by integers
+    my[:n] = np.asarray(y, np.float32) - 0.5
+    out = cv2.remap(np.ascontiguousarray(image, np.float32), mx.reshape(rows, width), my.reshape(rows, width),
+                    cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1)[:n]
 
 
 def silhouette_field(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid, min_views: int = 2,

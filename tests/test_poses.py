@@ -250,6 +250,14 @@ def test_sfm_outputs_follow_the_contract(synthetic_sfm):
         im = rec.images[i]
         c_obj = M[:3, :3] @ im.projection_center() + M[:3, 3]
         np.testing.assert_allclose(c_obj, by_stem[im.name[:-4]].center, atol=1e-6)
+    # scaling a model to another image size keeps it consistent (used for enlarged SIFT images)
+    e0 = rec.compute_mean_reprojection_error()
+    cam0 = next(iter(rec.cameras.values()))
+    f0, (w, h) = cam0.focal_length, (cam0.width, cam0.height)
+    rp._rescale_model(rec, (2 * h, 2 * w), 0.5)
+    cam1 = next(iter(rec.cameras.values()))
+    assert (cam1.width, cam1.height) == (2 * w, 2 * h) and cam1.focal_length == pytest.approx(2 * f0)
+    assert rec.compute_mean_reprojection_error() == pytest.approx(2 * e0, rel=1e-6)
     assert {"registered", "unregistered", "mean_reprojection_error_px", "timings", "trials"} <= set(diag)
     assert json.loads((out / "poses.json").read_text())["registered"] == diag["registered"]
 
