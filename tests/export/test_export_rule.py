@@ -25,7 +25,7 @@ def test_export_rule(model, tmp_path, repo_root):
     (captures / "demo" / "capture.yaml").write_text("export:\n  meters_per_unit: 0.5\n")
     target = results / "demo" / "export" / "asset.glb"
     proc = subprocess.run(
-        [sys.executable, "-m", "snakemake", "--cores", "1", str(target),
+        [sys.executable, "-m", "snakemake", "--cores", "1", str(target), "--allowed-rules", "export",
          "--config", f"captures={captures}", f"results={results}", "preset=draft"],
         cwd=repo_root, capture_output=True, text=True, timeout=300,
     )
