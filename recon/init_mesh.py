@@ -165,20 +165,6 @@ def silhouette_field(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid, 
     return field.reshape(r, r, r).astype(np.float32), seen.reshape(r, r, r)
 
 
-def carve_visual_hull(cams: CameraSet, masks: dict[str, np.ndarray], resolution: int = 128,
-                      center=(0.0, 0.0, 0.0), half_size: float = 1.0, min_views: int = 2,
-                      margin_px: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """Occupancy (R, R, R) bool of the visual hull in a cube, and the voxel-center offsets.
-
-    The second value is the 1-D array of voxel-center coordinates along each axis relative to
-    0 (add ``center`` per axis), i.e. voxel (i, j, k) is at ``center + (a[i], a[j], a[k])``.
-    """
-    grid = Grid.cube(center, half_size, resolution)
-    field, _ = silhouette_field(cams, masks, grid, min_views, margin_px)
-    a = np.arange(resolution) * grid.step - half_size + 0.5 * grid.step
-    return field > 0, a
-
-
 def isosurface(field: np.ndarray, grid: Grid) -> Mesh:
     """Zero level set of ``field`` (positive inside) as a closed mesh with outward normals."""
     import open3d as o3d

@@ -14,9 +14,10 @@ Method (why each step):
    histogram is bimodal (flash falloff makes it so). Otsu alone sits in the middle of the gap,
    which loses the object's own dark pixels (surfaces seen at grazing angles near the
    silhouette are lit at grazing angles too, so they are dark). The threshold is therefore
-   lowered to just above the background class: ``min(otsu, median_bg + k * MAD_bg)`` in log
-   space (``k = background_sigmas``). A pure black background (synthetic captures) then keeps
-   every pixel that received any light.
+   lowered to just above the background class: ``min(otsu, max(median_bg + k * MAD_bg,
+   P_bg))`` in log space (``k = background_sigmas``, ``P_bg`` its ``background_percentile``,
+   which clears sensor noise). A pure black background (synthetic captures) then keeps every
+   pixel that received any light.
 3. A small opening removes speckles (noise, dust); the largest connected component is the
    object (a flash-lit capture has one object in the middle); holes smaller than
    ``max_hole_fraction`` of the object's area are filled (dark texture or specular-free spots
@@ -58,7 +59,8 @@ class MaskSettings:
     """
 
     floor: float = 1e-4  # luminance floor relative to the 99.9th percentile
-    background_sigmas: float = 4.0  # threshold = min(otsu, bg median + this * bg MAD), log space
+    background_sigmas: float = 4.0  # threshold >= bg median + this * bg MAD (log space) ...
+    background_percentile: float = 99.5  # ... and >= this percentile of the background class
     open_radius: float = 0.004  # speckle removal
     close_radius: float = 0.008  # outline smoothing
     max_hole_fraction: float = 0.02  # holes smaller than this fraction of the object are filled
@@ -135,8 +137,10 @@ def derive_mask(rgb_linear: np.ndarray, settings: MaskSettings = MaskSettings())
     bg = log_l[log_l <= t_otsu]
     med = float(np.median(bg))
     mad = 1.4826 * float(np.median(np.abs(bg - med)))
-    # the smallest step above a constant background is a hair above the floor
-    t = min(t_otsu, med + settings.background_sigmas * mad + 1e-6)
+    # just above the background: its robust spread, and its upper tail where noise has one
+    # (the smallest step above a constant background is a hair above the floor)
+    t_bg = max(med + settings.background_sigmas * mad, float(np.percentile(bg, settings.background_percentile)))
+    t = min(t_otsu, t_bg + 1e-6)
     mask = log_l > t
 
     short = min(mask.shape)

@@ -1,9 +1,7 @@
-"""Small flash-lit test scenes for the geometry stages (masks, poses, init_mesh).
+"""Test scenes for the geometry stages (masks, poses, init_mesh, uv).
 
-A textured blob (a sphere with a few low-frequency bumps, albedo made of colored 3D Gaussian
-splats so that SIFT finds features) rendered by Mitsuba with a point light at each camera
-center and a black background, written as linear EXRs in the layout the geometry stages read:
-``<root>/linear/<stem>.exr``, ``<root>/gt/cameras.json``, ``<root>/gt/mesh.obj``.
+Analytic meshes (an icosphere, a bumpy blob), exact silhouettes by ray casting, and recon.synth
+captures rendered once per test session and shared between modules.
 """
 
 from __future__ import annotations
@@ -12,9 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.io.cameras import Camera, CameraSet, intrinsics, look_at, mitsuba_sensor_dict, save_cameras
-from recon.io.images import write_exr
-from recon.io.mesh import Mesh, write_obj
+from recon.io.cameras import Camera
+from recon.io.mesh import Mesh
 
 
 def icosphere(subdivisions: int) -> Mesh:
@@ -52,71 +49,6 @@ def blob_mesh(subdivisions: int = 6, seed: int = 0) -> Mesh:
         r += 0.12 * np.exp(6.0 * (d @ axis - 1.0))
     r *= np.array([1.0, 0.85, 0.75]) @ np.abs(d.T) ** 2 + 0.2  # squash a little
     return Mesh(d * r[:, None], m.t_pos_idx)
-
-
-def splat_albedo(points: np.ndarray, seed: int = 0, n: int = 1500) -> np.ndarray:
-    """(n, 3) albedo in [0.05, 0.9]: colored dots of many sizes (a feature-rich texture)."""
-    rng = np.random.default_rng(seed + 1)
-    centers = points[rng.choice(len(points), size=n, replace=False)]
-    sigma = rng.uniform(0.01, 0.05, size=n)
-    colors = rng.uniform(-0.5, 0.5, size=(n, 3))
-    alb = np.full((len(points), 3), 0.4)
-    for c, s, col in zip(centers, sigma, colors, strict=True):
-        w = np.clip((s - np.linalg.norm(points - c, axis=1)) / (0.3 * s), 0.0, 1.0)  # a dot
-        alb += w[:, None] * col
-    return np.clip(alb, 0.05, 0.9)
-
-
-def orbit_cameras(n_views: int, res: int, radius: float = 2.6, fov: float = 40.0, seed: int = 0) -> CameraSet:
-    """Cameras on a spiral over the upper 3/4 of a sphere, looking at the origin (z up)."""
-    rng = np.random.default_rng(seed + 2)
-    frames = []
-    for i in range(n_views):
-        z = 0.85 - 1.25 * (i + 0.5) / n_views  # elevation from high to a bit below the equator
-        a = i * 2.39996 + rng.uniform(-0.1, 0.1)  # golden angle
-        rxy = np.sqrt(1 - z * z)
-        eye = radius * np.array([rxy * np.cos(a), rxy * np.sin(a), z])
-        frames.append(Camera(f"images/{i:04d}.exr", res, res, intrinsics(res, res, fov), look_at(eye, [0, 0, 0])))
-    return CameraSet(tuple(frames), light_intensity=float(radius**2 * 1.5))
-
-
-def render(mesh: Mesh, albedo: np.ndarray, cams: CameraSet, spp: int = 16) -> list[np.ndarray]:
-    """Linear RGB ``(H, W, 3)`` per camera; point light at the camera center, black background."""
-    from recon.mi import load_variant
-
-    mi = load_variant("llvm_ad_rgb")
-    mm = mi.Mesh("blob", len(mesh.v_pos), len(mesh.t_pos_idx), has_vertex_normals=False)
-    params = mi.traverse(mm)
-    params["vertex_positions"] = mi.Float(mesh.v_pos.astype(np.float32).ravel())
-    params["faces"] = mi.UInt32(mesh.t_pos_idx.astype(np.uint32).ravel())
-    params.update()
-    mm.add_attribute("vertex_color", 3, mi.Float(albedo.astype(np.float32).ravel()))
-    mm.set_bsdf(mi.load_dict({"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}))
-    images = []
-    for cam in cams:
-        scene = mi.load_dict({
-            "type": "scene",
-            "integrator": {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0},
-            "sensor": mitsuba_sensor_dict(cam, spp=spp),
-            "light": {"type": "point", "position": cam.center.tolist(),
-                      "intensity": {"type": "spectrum", "value": cams.light_intensity}},
-            "blob": mm,
-        })
-        images.append(np.asarray(mi.render(scene, seed=len(images)), dtype=np.float32)[:, :, :3])
-    return images
-
-
-def make_scene(root: Path, n_views: int = 40, res: int = 256, seed: int = 0, spp: int = 16) -> dict:
-    """Render a blob capture into ``root`` (linear/, gt/); return its paths and objects."""
-    root = Path(root)
-    mesh = blob_mesh(seed=seed)
-    albedo = splat_albedo(mesh.v_pos, seed=seed)
-    cams = orbit_cameras(n_views, res, seed=seed)
-    for cam, img in zip(cams, render(mesh, albedo, cams, spp), strict=True):
-        write_exr(root / "linear" / f"{cam.stem}.exr", img)
-    save_cameras(root / "gt" / "cameras.json", cams)
-    write_obj(root / "gt" / "mesh.obj", mesh)
-    return {"root": root, "mesh": mesh, "cameras": cams, "linear": root / "linear"}
 
 
 def silhouette(mesh: Mesh, cam: Camera) -> np.ndarray:
