@@ -33,7 +33,7 @@ from recon.optimize import checkpoint as ckpt
 from recon.optimize import regularizers as reg
 from recon.optimize.guard import SurfaceGuard
 from recon.optimize.largesteps import AdamUniform, LargeSteps
-from recon.optimize.params import albedo_param, constant_map, roughness_param
+from recon.optimize.params import TexturePyramid, albedo_param, constant_map, roughness_param
 from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, topology_report, unwrap
 from recon.optimize.settings import OptimizeSettings, StageSettings
 from recon.optimize.views import Views, ViewSet, render_loss
@@ -61,7 +61,7 @@ class _Stage:
     covered: np.ndarray  # (T, T) bool, texels inside the charts
     topo: reg.MeshTopology
     geom: torch.Tensor  # u (large steps) or v (adam), float64, requires grad
-    maps: dict  # name -> raw tensor (T, T, C), requires grad
+    maps: dict  # name -> TexturePyramid of the raw (parameterized) map
     opt_geom: torch.optim.Optimizer
     opt_tex: torch.optim.Optimizer
     ls: LargeSteps | None
@@ -87,9 +87,10 @@ def _params(settings: OptimizeSettings) -> dict:
     }
 
 
-def _map_values(settings: OptimizeSettings, raw: dict) -> dict:
+def _map_values(settings: OptimizeSettings, maps: dict) -> dict:
+    """name -> (T, T, C) values in range, differentiable w.r.t. the pyramid levels."""
     p = _params(settings)
-    return {k: p[k].value(raw[k]) for k in MAP_NAMES}
+    return {k: p[k].value(maps[k].full()) for k in MAP_NAMES}
 
 
 # ---------------------------------------------------------------------- stage set-up
@@ -135,8 +136,10 @@ def _build_stage(index, stage_settings, h, mesh, v_init, covered, map_values, se
     p = _params(settings)
     maps = {}
     for k in MAP_NAMES:
-        raw = map_raw[k].clone() if map_raw is not None else p[k].raw(map_values[k])
-        maps[k] = raw.to(torch.float32).requires_grad_(True)
+        if map_raw is not None:
+            maps[k] = TexturePyramid.from_state(map_raw[k])
+        else:
+            maps[k] = TexturePyramid(p[k].raw(map_values[k]), settings.texture_levels)
     # start rates; the stage's lr_scale and decay are set before every step (_iteration)
     lr_g = settings.lr_geometry * bbox_scale
     lr_t = settings.lr_texture
@@ -144,7 +147,7 @@ def _build_stage(index, stage_settings, h, mesh, v_init, covered, map_values, se
         opt_geom = AdamUniform([geom], lr=lr_g, betas=settings.betas)
     else:
         opt_geom = torch.optim.Adam([geom], lr=lr_g, betas=settings.betas)
-    opt_tex = torch.optim.Adam([maps[k] for k in MAP_NAMES], lr=lr_t, betas=settings.betas)
+    opt_tex = torch.optim.Adam([t for k in MAP_NAMES for t in maps[k].parameters()], lr=lr_t, betas=settings.betas)
     if opt_state is not None:
         opt_geom.load_state_dict(opt_state["geom"])
         opt_tex.load_state_dict(opt_state["tex"])
@@ -171,7 +174,7 @@ def _stage_state(st: _Stage, next_iteration: int) -> dict:
                  "v_pos": st.mesh.v_pos, "v_init": st.v_init},
         "covered": st.covered,
         "geom": st.geom.detach().clone(),
-        "maps": {k: v.detach().clone() for k, v in st.maps.items()},
+        "maps": {k: v.state() for k, v in st.maps.items()},
         "optimizer": {"geom": st.opt_geom.state_dict(), "tex": st.opt_tex.state_dict()},
         "rng": {"scheme": "counter: numpy default_rng([seed, stage, iteration]); render seed blake2b"},
     }
@@ -224,7 +227,7 @@ def _iteration(st: _Stage, it: int, settings: OptimizeSettings, weights: dict, t
     st.opt_tex.step()
     p = _params(settings)
     for k in MAP_NAMES:
-        p[k].project_(st.maps[k])
+        st.maps[k].project_(p[k])
     t5 = time.perf_counter()
     timer.add("step", t5 - t4)
     # ---- surface guard: accept the step, or back off where it breaks the surface ----

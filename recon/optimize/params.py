@@ -65,3 +65,58 @@ def roughness_param(r_min: float, kind: str = "sigmoid") -> Parameterization:
 def constant_map(size: int, channels: int, value: float) -> np.ndarray:
     """A ``(size, size, channels)`` float32 map filled with ``value`` (the paper's initial maps)."""
     return np.full((int(size), int(size), int(channels)), float(value), dtype=np.float32)
+
+
+class TexturePyramid:
+    """A texture map as a sum of bilinearly upsampled levels (full size, 1/2, 1/4, ...).
+
+    ``raw = P_0 + sum_l up(P_l)``: the map can still take any value per texel (P_0), but the
+    coarse levels receive the summed gradient of every texel they cover, so low-frequency
+    content (a specular level seen only in a few highlights, say) is learned from the whole
+    neighbourhood instead of texel by texel. ``levels = 1`` is a plain texel map.
+
+    Parameters
+    ----------
+    raw : (T, T, C) tensor, the initial raw (parameterized) map; coarse levels start at zero.
+    levels : number of levels; sizes T, T/2, ... stop above 4 texels.
+    """
+
+    def __init__(self, raw: torch.Tensor, levels: int = 1):
+        if raw.ndim != 3:
+            raise ValueError(f"raw must be (T, T, C), got {tuple(raw.shape)}")
+        T, _, C = raw.shape
+        self.size = int(T)
+        self.levels = [raw.detach().to(torch.float32).clone().requires_grad_(True)]
+        s = T // 2
+        while len(self.levels) < int(levels) and s >= 4:
+            self.levels.append(torch.zeros((s, s, C), dtype=torch.float32, requires_grad=True))
+            s //= 2
+
+    def full(self) -> torch.Tensor:
+        """(T, T, C) raw map, differentiable w.r.t. every level."""
+        out = self.levels[0]
+        for lv in self.levels[1:]:
+            up = torch.nn.functional.interpolate(lv.permute(2, 0, 1)[None], size=(self.size, self.size),
+                                                 mode="bilinear", align_corners=False)
+            out = out + up[0].permute(1, 2, 0)
+        return out
+
+    def parameters(self) -> list[torch.Tensor]:
+        return list(self.levels)
+
+    @torch.no_grad()
+    def project_(self, param: Parameterization) -> None:
+        """Keep the summed raw map in range ("clamp" parameterization) by adjusting the finest level."""
+        if param.kind != "clamp":
+            return
+        full = self.full()
+        self.levels[0].add_(full.clamp(param.lo, param.hi) - full)
+
+    def state(self) -> list[torch.Tensor]:
+        return [lv.detach().clone() for lv in self.levels]
+
+    @staticmethod
+    def from_state(levels: list[torch.Tensor]) -> "TexturePyramid":
+        p = TexturePyramid(levels[0], 1)
+        p.levels += [lv.detach().to(torch.float32).clone().requires_grad_(True) for lv in levels[1:]]
+        return p

@@ -170,11 +170,6 @@ def _check_map(x: torch.Tensor, name: str) -> None:
         raise ValueError(f"{name} must be (H, W, C), got {tuple(x.shape)}")
 
 
-def _pad_hw(x: torch.Tensor, r: int) -> torch.Tensor:
-    """Zero-pad an (H, W, C) map by ``r`` texels on each side."""
-    return torch.nn.functional.pad(x.permute(2, 0, 1), (r, r, r, r)).permute(1, 2, 0)
-
-
 def specular_bilateral_loss(
     specular: torch.Tensor,
     diffuse: torch.Tensor,
@@ -196,17 +191,14 @@ def specular_bilateral_loss(
         raise ValueError("need sigma_space > 0, sigma_color > 0, radius >= 1")
     H, W = specular.shape[:2]
     r = int(radius)
-    vq = (
-        torch.ones((H, W, 1), dtype=specular.dtype)
-        if valid is None
-        else valid.to(specular.dtype)[..., None]
-    )
+    pad = torch.nn.functional.pad
+    vq = torch.ones((H, W), dtype=specular.dtype) if valid is None else valid.to(specular.dtype)
     offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
-    # ---- weights mu_pq (constant: no gradient), channels first for speed ----
+    # ---- weights mu_pq / sum_q mu_pq (constant: no gradient); contiguous channels-first maps ----
     with torch.no_grad():
-        d = diffuse.detach().to(specular.dtype).permute(2, 0, 1)
-        dp = torch.nn.functional.pad(d, (r, r, r, r))
-        vp = _pad_hw(vq, r)[..., 0]
+        d = diffuse.detach().to(specular.dtype).permute(2, 0, 1).contiguous()
+        dp = pad(d, (r, r, r, r))
+        vp = pad(vq, (r, r, r, r))
         weights = []
         den = torch.zeros((H, W), dtype=specular.dtype)
         for dy, dx in offsets:
@@ -216,11 +208,13 @@ def specular_bilateral_loss(
             den.add_(w)
             weights.append(w)
         den.clamp_(min=1e-12)
-        weights = [w.div_(den)[..., None] for w in weights]
+        for w in weights:
+            w.div_(den)
     # ---- the weighted average of specular and the L1 distance to it ----
-    sp = _pad_hw(specular, r)
-    avg = sum(w * sp[r + dy:r + dy + H, r + dx:r + dx + W] for w, (dy, dx) in zip(weights, offsets))
-    err = (specular - avg).abs().mean(-1, keepdim=True) * vq
+    s_cf = specular.permute(2, 0, 1).contiguous()
+    sp = pad(s_cf, (r, r, r, r))
+    avg = sum(w * sp[:, r + dy:r + dy + H, r + dx:r + dx + W] for w, (dy, dx) in zip(weights, offsets))
+    err = (s_cf - avg).abs().mean(0) * vq
     return err.sum() / vq.sum().clamp(min=1.0)
 
 

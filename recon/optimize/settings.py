@@ -95,7 +95,9 @@ class OptimizeSettings:
     Materials: ``init_diffuse``, ``init_specular``, ``init_roughness`` (constant initial maps,
     as in the paper), ``specular_channels`` (1 or 3), ``r_min``, ``parameterization``
     ("sigmoid": value = sigmoid(logit), roughness = r_min + (1 - r_min) sigmoid; "clamp": the
-    value itself, projected back into range after each step).
+    value itself, projected back into range after each step), ``texture_levels`` (each raw map
+    is a sum of this many levels, full size, 1/2, 1/4, ...: coarse levels learn low-frequency
+    content from all the texels they cover; 1 = a plain texel map).
 
     Robust surface evolution: ``guard`` (reject self-intersections by halving the displacement
     of the offending vertices), ``guard_max_halvings``.
@@ -136,6 +138,7 @@ class OptimizeSettings:
     specular_channels: int = 1
     r_min: float = 0.02
     parameterization: str = "sigmoid"
+    texture_levels: int = 4
     guard: bool = True
     guard_max_halvings: int = 8
 
@@ -161,6 +164,8 @@ class OptimizeSettings:
         for name in ("resolution", "spp", "views_per_iteration", "checkpoint_every"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if int(self.texture_levels) < 1:
+            raise ValueError(f"texture_levels must be >= 1, got {self.texture_levels}")
         if self.specular_channels not in (1, 3):
             raise ValueError(f"specular_channels must be 1 or 3, got {self.specular_channels}")
         if not (0 < self.r_min < 1):

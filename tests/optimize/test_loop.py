@@ -169,6 +169,11 @@ def test_settings_from_preset_dict():
     w = abl.weights()
     assert w["laplacian"] == w["specular"] == w["roughness"] == 0 and w["edge"] > 0
     assert OptimizeSettings(use_normal_edge=False).weights()["normal"] == 0
+    st = StageSettings(iterations=11, lr_scale=0.5, lr_decay=0.1)
+    assert st.lr_factor(0) == pytest.approx(0.5) and st.lr_factor(10) == pytest.approx(0.05)
+    assert st.lr_factor(5) == pytest.approx(0.5 * 0.1**0.5)
+    with pytest.raises(ValueError, match="lr_decay"):
+        StageSettings(lr_decay=0.0)
 
 
 def test_from_dirs_pairs_views_masks_and_clipped_pixels(capture, tmp_path):

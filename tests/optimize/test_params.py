@@ -64,3 +64,30 @@ def test_errors_and_constant_map():
         Parameterization(0.0, 1.0, "tanh")
     m = constant_map(8, 3, 0.25)
     assert m.shape == (8, 8, 3) and m.dtype == np.float32 and np.all(m == 0.25)
+
+
+def test_texture_pyramid():
+    from recon.optimize.params import TexturePyramid
+
+    raw = torch.randn(16, 16, 3)
+    p = TexturePyramid(raw, levels=4)
+    assert [tuple(lv.shape) for lv in p.levels] == [(16, 16, 3), (8, 8, 3), (4, 4, 3)]  # stops at 4 texels
+    torch.testing.assert_close(p.full(), raw)
+    w = torch.rand(16, 16, 3)
+    (p.full() * w).sum().backward()
+    torch.testing.assert_close(p.levels[0].grad, w)
+    for lv in p.levels[1:]:
+        # a coarse texel collects the gradient of every texel it covers (bilinear adjoint)
+        assert lv.grad.sum().item() == pytest.approx(w.sum().item(), rel=1e-5)
+        assert torch.all(lv.grad > 0)
+    with torch.no_grad():
+        p.levels[2].add_(1.0)
+    q = TexturePyramid.from_state(p.state())
+    torch.testing.assert_close(q.full(), p.full())
+    # the clamp parameterization keeps the sum of levels in range
+    c = albedo_param("clamp")
+    p.project_(c)
+    assert p.full().min() >= -1e-6 and p.full().max() <= 1 + 1e-6
+    assert len(TexturePyramid(raw, levels=1).parameters()) == 1
+    with pytest.raises(ValueError, match=r"\(T, T, C\)"):
+        TexturePyramid(torch.zeros(4, 4))
