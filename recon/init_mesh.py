@@ -3,7 +3,9 @@
 A given ``init_mesh.ply`` passes through after validation. Otherwise the visual hull of the
 masks, built without CUDA:
 
-1. Silhouette distance field on a grid (``resolution``^3 in [-bound, bound]^3): for every view
+1. Silhouette distance field on a grid (``resolution``^3 voxels in a cube fitted to a coarse
+   48^3 hull: the poses stage's object cube [-1, 1]^3 first, else, for given cameras in other
+   units, a cube around the point the cameras look at; or [-bound, bound]^3): for every view
    the signed 2-D distance of a voxel's projection to the mask's outline (positive inside,
    from ``cv2.distanceTransform``, bilinear), converted to world units at the voxel's depth
    (``d_px * z / f``: the distance to the silhouette cone at that depth). The field is the
@@ -50,7 +52,8 @@ class InitMeshError(ValueError):
 @dataclass(frozen=True)
 class InitMeshSettings:
     resolution: int = 128  # grid cells per axis
-    bound: float = 1.0  # the grid spans [-bound, bound]^3 (the poses stage's object cube)
+    bound: float = 0.0  # > 0: the grid spans [-bound, bound]^3; 0: fitted to the hull (see hull_bounds)
+    bound_margin: float = 0.05  # fitted grids extend the coarse hull's box by this fraction
     min_views: int = 2  # a voxel must be seen by this many views to be kept
     mask_margin_px: float = 0.5  # grow the silhouettes by this many pixels (mask edge safety)
     target_faces: int = 5000
@@ -59,8 +62,8 @@ class InitMeshSettings:
     def __post_init__(self):
         if self.resolution < 8:
             raise ValueError(f"resolution must be >= 8, got {self.resolution}")
-        if self.bound <= 0 or self.target_faces < 100 or self.min_views < 1:
-            raise ValueError("bound must be > 0, target_faces >= 100 and min_views >= 1")
+        if self.bound < 0 or self.target_faces < 100 or self.min_views < 1:
+            raise ValueError("bound must be >= 0, target_faces >= 100 and min_views >= 1")
 
 
 @dataclass(frozen=True)
@@ -258,20 +261,95 @@ def remesh(mesh: Mesh, target_faces: int, iterations: int = 8) -> Mesh:
     return out
 
 
+def _touches(inside: np.ndarray) -> bool:
+    return bool(inside[0].any() or inside[-1].any() or inside[:, 0].any() or inside[:, -1].any()
+                or inside[:, :, 0].any() or inside[:, :, -1].any())
+
+
+def _rays_meet(cams: CameraSet, masks: dict[str, np.ndarray]) -> tuple[np.ndarray, float]:
+    """The point closest (least squares) to the rays through the masks' centroids, and the
+    median camera distance to it: where the cameras look, and how far away they are."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    centers = []
+    for cam in cams:
+        m = masks.get(cam.stem)
+        if m is None or not m.any():
+            continue
+        i, j = np.argwhere(m).mean(0) + 0.5
+        d = cam.camera_to_world[:3, :3] @ np.linalg.solve(cam.K, [j, i, 1.0])
+        d /= np.linalg.norm(d)
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ cam.center
+        centers.append(cam.center)
+    if len(centers) < 2 or np.linalg.cond(A) > 1e8:
+        raise InitMeshError("the cameras do not look at a common point (parallel or too few masks); "
+                            "check cameras.json and the masks")
+    p = np.linalg.solve(A, b)
+    return p, float(np.median(np.linalg.norm(np.asarray(centers) - p, axis=1)))
+
+
+def hull_bounds(cams: CameraSet, masks: dict[str, np.ndarray], settings: InitMeshSettings,
+                coarse: int = 48) -> tuple[np.ndarray, float, str]:
+    """Center (3,) and half size of a cube that holds the visual hull with a small margin.
+
+    The poses stage's object cube [-1, 1]^3 is tried first (a coarse hull there that does not
+    reach the cube's faces); otherwise (given cameras in other units or another frame) a cube
+    around the point the cameras look at, grown until the coarse hull fits. Fitting the grid
+    to the hull also spends the voxels on the object, not on empty space.
+    """
+    def attempt(center, half):
+        grid = Grid.cube(center, half, coarse)
+        field, _ = silhouette_field(cams, masks, grid, settings.min_views, settings.mask_margin_px)
+        inside = field > 0
+        if not inside.any():
+            return None, "empty"
+        if _touches(inside):
+            return None, "touches"
+        idx = np.argwhere(inside)
+        lo = grid.origin + grid.step * (idx.min(0) - 1)
+        hi = grid.origin + grid.step * (idx.max(0) + 1)
+        c = 0.5 * (lo + hi)
+        return (c, 0.5 * float(np.max(hi - lo)) * (1.0 + settings.bound_margin) + grid.step), "ok"
+
+    if sum(bool(m.any()) for m in masks.values()) < 2:
+        raise InitMeshError("the visual hull is empty: fewer than 2 masks show any object "
+                            "(check the masks stage's output, or give masks/ in the capture)")
+    box, why = attempt(np.zeros(3), 1.0)
+    if box is not None:
+        return box[0], box[1], "object cube [-1, 1]^3"
+    center, distance = _rays_meet(cams, masks)
+    half = 0.25 * distance
+    for _ in range(4):
+        box, why = attempt(center, half)
+        if box is not None:
+            return box[0], box[1], "fitted around the cameras' focus"
+        if why == "empty":
+            raise InitMeshError("the visual hull is empty: the masks and the cameras do not agree "
+                                "(check the masks, and that cameras.json belongs to these photos)")
+        half *= 2.0
+    raise InitMeshError(f"the visual hull does not fit in a cube of half size {half / 2:.3g} around the "
+                        "cameras' focus: the masks probably include background")
+
+
 def visual_hull_mesh(cams: CameraSet, masks: dict[str, np.ndarray],
                      settings: InitMeshSettings = InitMeshSettings()) -> tuple[Mesh, dict]:
-    """The remeshed visual hull in [-bound, bound]^3 and statistics."""
+    """The remeshed visual hull and statistics; the grid is [-bound, bound]^3, or fitted to
+    the hull (:func:`hull_bounds`) when ``bound`` is 0."""
     t0 = time.perf_counter()
-    grid = Grid.cube((0.0, 0.0, 0.0), settings.bound, settings.resolution)
+    if settings.bound > 0:
+        center, half, source = np.zeros(3), settings.bound, "setting 'bound'"
+    else:
+        center, half, source = hull_bounds(cams, masks, settings)
+    grid = Grid.cube(center, half, settings.resolution)
     field, seen = silhouette_field(cams, masks, grid, settings.min_views, settings.mask_margin_px)
     t1 = time.perf_counter()
     inside = field > 0
-    touches = bool(inside[0].any() or inside[-1].any() or inside[:, 0].any() or inside[:, -1].any()
-                   or inside[:, :, 0].any() or inside[:, :, -1].any())
+    touches = _touches(inside)
     if touches:
-        log.warning("the visual hull reaches the edge of [-%g, %g]^3: the object may be cut off "
-                    "(masks including background, or an object frame that is too small)",
-                    settings.bound, settings.bound)
+        log.warning("the visual hull reaches the edge of the grid (center %s, half size %.3g): the "
+                    "object may be cut off (masks including background?)", np.round(center, 3).tolist(), half)
     raw = largest_component(isosurface(field, grid))
     t2 = time.perf_counter()
     mesh = remesh(raw, settings.target_faces, settings.remesh_iterations)
@@ -282,6 +360,8 @@ def visual_hull_mesh(cams: CameraSet, masks: dict[str, np.ndarray],
         "faces": int(len(mesh.t_pos_idx)),
         "vertices": int(len(mesh.v_pos)),
         "touches_bounds": touches,
+        "grid": {"center": center.tolist(), "half_size": float(half), "resolution": settings.resolution,
+                 "voxel": float(grid.step), "source": source},
         "timings": {"field_s": t1 - t0, "isosurface_s": t2 - t1, "remesh_s": t3 - t2},
     }
     return mesh, stats

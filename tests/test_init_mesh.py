@@ -45,6 +45,29 @@ def test_visual_hull_of_a_sphere_is_closed_and_close():
     assert mesh.volume() >= 0.98 * sphere.volume()
 
 
+def test_grid_fits_objects_in_other_units_and_places():
+    """Given cameras in millimetres around an object far from the origin: the grid follows."""
+    c = np.array([300.0, -200.0, 100.0])
+    sphere = _sphere(50.0, center=c)
+    cams = CameraSet(tuple(
+        Camera(f"images/{k:02d}.png", 96, 96, intrinsics(96, 96, 40),
+               look_at(c + [300 * np.cos(t), 300 * np.sin(t), 120 * np.sin(2 * t + 0.3)], c))
+        for k, t in enumerate(np.linspace(0, 2 * np.pi, 12, endpoint=False))))
+    masks = {cam.stem: silhouette(sphere, cam) for cam in cams}
+    mesh, stats = rim.visual_hull_mesh(cams, masks, rim.InitMeshSettings(resolution=64, target_faces=2000))
+    assert stats["grid"]["source"] == "fitted around the cameras' focus"
+    assert 50 < stats["grid"]["half_size"] < 70 and not stats["touches_bounds"]
+    rim.check_closed_manifold(mesh)
+    r = metrics.chamfer(mesh, sphere, n_samples=20_000)
+    assert r["completeness"] < 0.02 and r["accuracy"] < 0.02
+    # the same object at the origin in unit size uses the object cube, fitted tightly
+    unit = _sphere(0.5)
+    cams1 = _ring()
+    _, st1 = rim.visual_hull_mesh(cams1, {cam.stem: silhouette(unit, cam) for cam in cams1},
+                                  rim.InitMeshSettings(resolution=64, target_faces=2000))
+    assert st1["grid"]["source"] == "object cube [-1, 1]^3" and st1["grid"]["half_size"] < 0.7
+
+
 def test_silhouette_field_sign_and_distance():
     sphere = _sphere(0.5)
     cams = _ring(n=16, res=128)
@@ -66,6 +89,12 @@ def test_empty_hull_and_missing_masks_are_errors(tmp_path):
     cams = _ring(n=4, res=32)
     masks = {c.stem: np.zeros((32, 32), bool) for c in cams}
     with pytest.raises(rim.InitMeshError, match="visual hull is empty"):
+        rim.visual_hull_mesh(cams, masks, rim.InitMeshSettings(resolution=16))
+    # masks that cannot belong to these cameras: each shows a blob in a different corner
+    for k, c in enumerate(cams):
+        masks[c.stem] = np.zeros((32, 32), bool)
+        masks[c.stem][(k % 2) * 24:(k % 2) * 24 + 8, (k // 2) * 24:(k // 2) * 24 + 8] = True
+    with pytest.raises(rim.InitMeshError, match="do not agree|common point"):
         rim.visual_hull_mesh(cams, masks, rim.InitMeshSettings(resolution=16))
     save_cameras(tmp_path / "cameras.json", cams)
     (tmp_path / "masks").mkdir()
