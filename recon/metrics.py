@@ -136,7 +136,7 @@ def pose_errors(est: CameraSet, true: CameraSet, similarity: Similarity | None =
     stems, ce, ct = _matched(est, true)
     sim = similarity if similarity is not None else align_cameras(est, true)
     rot, cen = [], []
-    for a, b in zip(ce, ct):
+    for a, b in zip(ce, ct, strict=True):
         # camera-to-world rotation of the estimate, expressed in the true frame
         R_est = sim.rotation @ a.camera_to_world[:3, :3]
         rot.append(rotation_angle_deg(b.camera_to_world[:3, :3].T @ R_est))
