@@ -79,3 +79,64 @@ def get_all_targets(wildcards):
                 targets.append(f"{RESULTS}/{capture}/{path}")
                 break
     return targets
+
+
+# ---- Input functions of the geometry stages (given files skip the stages that make them) ----
+def get_given_masks(wildcards):
+    """The capture's own mask files (tracked, so editing one reruns the stage)."""
+    folder = capture_dir(wildcards.capture) / "masks"
+    return sorted(str(p) for p in folder.glob("*.png")) if folder.is_dir() else []
+
+
+def get_given_masks_dir(wildcards):
+    return str(capture_dir(wildcards.capture) / "masks") if has_masks(wildcards.capture) else ""
+
+
+def get_cameras(wildcards):
+    """cameras.json for later stages: the capture's own (no SfM), else the poses stage's."""
+    if has_cameras(wildcards.capture):
+        return str(capture_dir(wildcards.capture) / "cameras.json")
+    return f"{RESULTS}/{wildcards.capture}/poses/cameras.json"
+
+
+def get_views_dir(wildcards):
+    """Folder of the pinhole linear views (<stem>.exr, <stem>.sat.png)."""
+    if has_cameras(wildcards.capture):
+        return f"{RESULTS}/{wildcards.capture}/linear"
+    return f"{RESULTS}/{wildcards.capture}/poses/undistorted"
+
+
+def get_views(wildcards):
+    """The file that marks the pinhole views of get_views_dir as complete."""
+    if has_cameras(wildcards.capture):
+        return f"{RESULTS}/{wildcards.capture}/linear/linear.json"
+    return f"{RESULTS}/{wildcards.capture}/poses/poses.json"
+
+
+def get_view_masks_dir(wildcards):
+    """Folder of the masks in the pinhole views (<stem>.png)."""
+    if has_cameras(wildcards.capture):
+        return f"{RESULTS}/{wildcards.capture}/masks"
+    return f"{RESULTS}/{wildcards.capture}/poses/undistorted/masks"
+
+
+def get_view_masks(wildcards):
+    """The file that marks the masks of get_view_masks_dir as complete."""
+    if has_cameras(wildcards.capture):
+        return f"{RESULTS}/{wildcards.capture}/masks/masks.json"
+    return f"{RESULTS}/{wildcards.capture}/poses/poses.json"
+
+
+def get_given_cameras(wildcards):
+    return get_cameras(wildcards) if has_cameras(wildcards.capture) else ""
+
+
+def get_init_mesh(wildcards):
+    """The initial mesh for later stages: the capture's init_mesh.ply, else this stage's."""
+    if has_init_mesh(wildcards.capture):
+        return str(capture_dir(wildcards.capture) / "init_mesh.ply")
+    return f"{RESULTS}/{wildcards.capture}/init_mesh/mesh.ply"
+
+
+def get_given_init_mesh(wildcards):
+    return get_init_mesh(wildcards) if has_init_mesh(wildcards.capture) else ""

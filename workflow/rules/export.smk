@@ -10,7 +10,7 @@ rule export:
         diffuse=f"{RESULTS}/{{capture}}/optimize/diffuse.exr",
         specular=f"{RESULTS}/{{capture}}/optimize/specular.exr",
         roughness=f"{RESULTS}/{{capture}}/optimize/roughness.exr",
-        cameras=f"{RESULTS}/{{capture}}/poses/cameras.json",
+        cameras=get_cameras,
     output:
         glb=f"{RESULTS}/{{capture}}/export/asset.glb",
         usdz=f"{RESULTS}/{{capture}}/export/asset.usdz",
@@ -21,5 +21,7 @@ rule export:
         f"{RESULTS}/{{capture}}/benchmarks/export.tsv"
     params:
         settings=get_settings("export"),
+    conda:
+        "../../envs/recon.yaml"
     script:
         "../scripts/export.py"

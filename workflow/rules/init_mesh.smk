@@ -6,17 +6,6 @@
 # later stages straight at that file. Asked for explicitly, the rule validates and copies it.
 
 
-def get_init_mesh(wildcards):
-    """The initial mesh for later stages: the capture's init_mesh.ply, else this stage's."""
-    if has_init_mesh(wildcards.capture):
-        return str(capture_dir(wildcards.capture) / "init_mesh.ply")
-    return f"{RESULTS}/{wildcards.capture}/init_mesh/mesh.ply"
-
-
-def get_given_init_mesh(wildcards):
-    return get_init_mesh(wildcards) if has_init_mesh(wildcards.capture) else ""
-
-
 rule init_mesh:
     input:
         cameras=get_cameras,
@@ -31,5 +20,7 @@ rule init_mesh:
         masks_dir=get_view_masks_dir,
         given=get_given_init_mesh,
         settings=get_settings("init_mesh"),
+    conda:
+        "../../envs/recon.yaml"
     script:
         "../scripts/init_mesh.py"

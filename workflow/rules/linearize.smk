@@ -16,5 +16,7 @@ rule linearize:
     params:
         capture_dir=get_capture_dir,
         settings=get_settings("linearize"),
+    conda:
+        "../../envs/recon.yaml"
     script:
         "../scripts/linearize.py"

@@ -4,16 +4,6 @@
 # masks/ folder atomically; masks.json (per-view source and coverage) is the declared output.
 
 
-def get_given_masks(wildcards):
-    """The capture's own mask files (tracked, so editing one reruns the stage)."""
-    folder = capture_dir(wildcards.capture) / "masks"
-    return sorted(str(p) for p in folder.glob("*.png")) if folder.is_dir() else []
-
-
-def get_given_masks_dir(wildcards):
-    return str(capture_dir(wildcards.capture) / "masks") if has_masks(wildcards.capture) else ""
-
-
 rule masks:
     input:
         linear=f"{RESULTS}/{{capture}}/linear/linear.json",
@@ -28,5 +18,7 @@ rule masks:
         given_dir=get_given_masks_dir,
         stems=get_image_stems,
         settings=get_settings("masks"),
+    conda:
+        "../../envs/recon.yaml"
     script:
         "../scripts/masks.py"

@@ -8,45 +8,6 @@
 # Asked for explicitly, the rule passes the given cameras through (validated).
 
 
-def get_cameras(wildcards):
-    """cameras.json for later stages: the capture's own (no SfM), else the poses stage's."""
-    if has_cameras(wildcards.capture):
-        return str(capture_dir(wildcards.capture) / "cameras.json")
-    return f"{RESULTS}/{wildcards.capture}/poses/cameras.json"
-
-
-def get_views_dir(wildcards):
-    """Folder of the pinhole linear views (<stem>.exr, <stem>.sat.png)."""
-    if has_cameras(wildcards.capture):
-        return f"{RESULTS}/{wildcards.capture}/linear"
-    return f"{RESULTS}/{wildcards.capture}/poses/undistorted"
-
-
-def get_views(wildcards):
-    """The file that marks the pinhole views of get_views_dir as complete."""
-    if has_cameras(wildcards.capture):
-        return f"{RESULTS}/{wildcards.capture}/linear/linear.json"
-    return f"{RESULTS}/{wildcards.capture}/poses/poses.json"
-
-
-def get_view_masks_dir(wildcards):
-    """Folder of the masks in the pinhole views (<stem>.png)."""
-    if has_cameras(wildcards.capture):
-        return f"{RESULTS}/{wildcards.capture}/masks"
-    return f"{RESULTS}/{wildcards.capture}/poses/undistorted/masks"
-
-
-def get_view_masks(wildcards):
-    """The file that marks the masks of get_view_masks_dir as complete."""
-    if has_cameras(wildcards.capture):
-        return f"{RESULTS}/{wildcards.capture}/masks/masks.json"
-    return f"{RESULTS}/{wildcards.capture}/poses/poses.json"
-
-
-def get_given_cameras(wildcards):
-    return get_cameras(wildcards) if has_cameras(wildcards.capture) else ""
-
-
 rule poses:
     input:
         linear=f"{RESULTS}/{{capture}}/linear/linear.json",
@@ -61,5 +22,7 @@ rule poses:
     params:
         given=get_given_cameras,
         settings=get_settings("poses"),
+    conda:
+        "../../envs/recon.yaml"
     script:
         "../scripts/poses.py"

@@ -15,7 +15,7 @@ rule report:
         roughness=f"{RESULTS}/{{capture}}/optimize/roughness.exr",
         optimize_log=f"{RESULTS}/{{capture}}/optimize/log.jsonl",
         glb=f"{RESULTS}/{{capture}}/export/asset.glb",
-        cameras=f"{RESULTS}/{{capture}}/poses/cameras.json",
+        cameras=get_cameras,
         linear=f"{RESULTS}/{{capture}}/linear/linear.json",
         masks=f"{RESULTS}/{{capture}}/masks/masks.json",
     output:
@@ -30,5 +30,7 @@ rule report:
         undistorted=f"{RESULTS}/{{capture}}/poses/undistorted",
         benchmarks=f"{RESULTS}/{{capture}}/benchmarks",
         settings=get_settings("report"),
+    conda:
+        "../../envs/recon.yaml"
     script:
         "../scripts/report.py"

@@ -14,5 +14,7 @@ rule uv:
         f"{RESULTS}/{{capture}}/benchmarks/uv.tsv"
     params:
         settings=get_settings("uv"),
+    conda:
+        "../../envs/recon.yaml"
     script:
         "../scripts/uv.py"
