@@ -181,7 +181,7 @@ def test_too_few_registered_views_is_a_clear_error(tmp_path):
     msg = str(e.value)
     assert "only 0 of 4 views could be registered" in msg
     for k in range(4):
-        assert re.search(rf"  v{k}: .*(no verified match|features)", msg), msg
+        assert re.search(rf"  v{k}: .*(no verified match|features|matches only views that are not registered)", msg), msg
     assert "What to try" in msg and "cameras.json" in msg
     assert not out.exists() and not _leftovers(tmp_path)  # nothing partial
 
