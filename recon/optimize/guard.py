@@ -114,10 +114,12 @@ class SurfaceGuard:
             bad[self.pairs[fold_new].ravel()] = True
         return bad
 
-    def accept(self, v_old: np.ndarray, v_new: np.ndarray) -> tuple[np.ndarray, dict]:
+    def accept(self, v_old: np.ndarray, v_new: np.ndarray, first_bad: np.ndarray | None = None
+               ) -> tuple[np.ndarray, dict]:
         """The accepted positions (V, 3) for a proposed step ``v_old -> v_new`` and a report.
 
-        ``v_old`` must be the last accepted positions (defect-free relative to the baseline).
+        ``v_old`` must be the last accepted positions (defect-free relative to the baseline);
+        ``first_bad`` is :meth:`new_bad_faces` of ``v_new`` when it was already computed.
         """
         v_old = np.asarray(v_old, dtype=np.float64)
         disp = np.asarray(v_new, dtype=np.float64) - v_old
@@ -125,7 +127,7 @@ class SurfaceGuard:
         info = {"halvings": 0, "frozen": 0, "reverted": False}
         freeze_rounds = 0
         v = v_old + disp
-        bad = self.new_bad_faces(v)
+        bad = self.new_bad_faces(v) if first_bad is None else first_bad
         while bad.any():
             verts = np.unique(self.faces[bad])
             if info["halvings"] < self.max_halvings:

@@ -18,6 +18,7 @@ import json
 import logging
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -68,6 +69,10 @@ class _Stage:
     guard: SurfaceGuard | None
     renderer: object
     targets: ViewSet
+    executor: object = None  # worker thread of the surface checks
+    pending: object = None  # Future of the check of ``proposed``
+    proposed: np.ndarray | None = None  # positions stepped to, not yet checked
+    proposed_record: dict | None = None  # log record of the iteration that proposed them
 
 
 class _Timer:
@@ -181,21 +186,17 @@ def _stage_state(st: _Stage, next_iteration: int) -> dict:
 
 
 # ---------------------------------------------------------------------- one iteration
-def _iteration(st: _Stage, it: int, settings: OptimizeSettings, weights: dict, tone_scale: float,
-               light: float, timer: _Timer) -> dict:
-    n = len(st.targets)
-    B = min(int(settings.views_per_iteration), n)
-    idx = np.sort(iteration_views(settings.seed, st.index, it, n, B))
+def _forward_backward(st: _Stage, it: int, idx: np.ndarray, settings: OptimizeSettings, weights: dict,
+                      tone_scale: float, light: float, times: dict):
+    """Render the views ``idx``, evaluate the loss and backpropagate (gradients in the parameters)."""
     t0 = time.perf_counter()
     v = _positions(st)
     t1 = time.perf_counter()
-    timer.add("geometry", t1 - t0)
     vals = _map_values(settings, st.maps)
     cams = [st.targets.cameras[i] for i in idx]
     img = st.renderer.render_torch(v.to(torch.float32), vals["diffuse"], vals["specular"], vals["roughness"],
                                    cams, light, seed=ckpt.render_seed(settings.seed, st.index, it))
     t2 = time.perf_counter()
-    timer.add("render", t2 - t1)
     terms = {"render": render_loss(img, st.targets.images[idx], st.targets.weights[idx], settings.tone_map, tone_scale)}
     if weights["laplacian"]:
         terms["laplacian"] = reg.laplacian_loss(v, st.topo, st.h, settings.laplacian)
@@ -212,53 +213,99 @@ def _iteration(st: _Stage, it: int, settings: OptimizeSettings, weights: dict, t
         terms["roughness"] = reg.roughness_tv_loss(vals["roughness"], valid)
     total = sum(weights[k] * t.to(torch.float64) for k, t in terms.items())
     t3 = time.perf_counter()
-    timer.add("loss", t3 - t2)
     st.opt_geom.zero_grad(set_to_none=True)
     st.opt_tex.zero_grad(set_to_none=True)
     total.backward()
+    t4 = time.perf_counter()
+    for phase, dt in (("geometry", t1 - t0), ("render", t2 - t1), ("loss", t3 - t2), ("backward", t4 - t3)):
+        times[phase] += dt
+    return total, terms
+
+
+def _timed_check(guard: SurfaceGuard, v: np.ndarray):
+    t0 = time.perf_counter()
+    bad = guard.new_bad_faces(v)
+    return bad, time.perf_counter() - t0
+
+
+def _resolve(st: _Stage) -> bool:
+    """Wait for the pending check of the proposed positions; accept them or back off.
+
+    Returns True when the positions were changed (the proposal had new defects).
+    """
+    if st.pending is None:
+        return False
+    bad, dt = st.pending.result()
+    st.pending = None
+    changed = bool(bad.any())
+    info = {"halvings": 0, "frozen": 0, "reverted": False}
+    if changed:
+        v_acc, info = st.guard.accept(st.mesh.v_pos, st.proposed, first_bad=bad)
+        with torch.no_grad():
+            st.geom.copy_(torch.from_numpy(st.ls.M @ v_acc if st.ls is not None else v_acc))
+    else:
+        v_acc = st.proposed
+    st.mesh.v_pos = v_acc
+    st.proposed = None
+    if st.proposed_record is not None:
+        st.proposed_record.update(guard_halvings=info["halvings"], guard_frozen=info["frozen"],
+                                  guard_reverted=bool(info["reverted"]), t_guard_check=dt)
+        st.proposed_record = None
+    return changed
+
+
+def _iteration(st: _Stage, it: int, settings: OptimizeSettings, weights: dict, tone_scale: float,
+               light: float, timer: _Timer) -> dict:
+    """One step. The surface check of a step's result runs in a worker thread while the next
+    iteration renders with it; the optimizer only steps after the check. When the check finds
+    new defects, the positions are backed off and this iteration's forward/backward pass is
+    redone, so the accepted trajectory is exactly that of checking synchronously."""
+    n = len(st.targets)
+    B = min(int(settings.views_per_iteration), n)
+    idx = np.sort(iteration_views(settings.seed, st.index, it, n, B))
+    times = {p: 0.0 for p in PHASES}
+    total, terms = _forward_backward(st, it, idx, settings, weights, tone_scale, light, times)
+    t0 = time.perf_counter()
+    redo = _resolve(st)
+    times["geometry"] += time.perf_counter() - t0
+    if redo:
+        total, terms = _forward_backward(st, it, idx, settings, weights, tone_scale, light, times)
+    t4 = time.perf_counter()
     f = st.settings.lr_factor(it)
     for g in st.opt_geom.param_groups:
         g["lr"] = settings.lr_geometry * st.bbox_scale * f
     for g in st.opt_tex.param_groups:
         g["lr"] = settings.lr_texture * f
-    t4 = time.perf_counter()
-    timer.add("backward", t4 - t3)
     st.opt_geom.step()
     st.opt_tex.step()
     p = _params(settings)
     for k in MAP_NAMES:
         st.maps[k].project_(p[k])
     t5 = time.perf_counter()
-    timer.add("step", t5 - t4)
-    # ---- surface guard: accept the step, or back off where it breaks the surface ----
-    guard_info = {"halvings": 0, "frozen": 0, "reverted": False}
-    with torch.no_grad():
-        g = st.geom.detach().numpy()
-        v_new = st.ls.solve_np(g) if st.ls is not None else g.copy()
-        if st.guard is not None:
-            v_acc, guard_info = st.guard.accept(st.mesh.v_pos, v_new)
-            if guard_info["halvings"] or guard_info["frozen"] or guard_info["reverted"]:
-                st.geom.copy_(torch.from_numpy(st.ls.M @ v_acc if st.ls is not None else v_acc))
-        else:
-            v_acc = v_new
-        st.mesh.v_pos = v_acc
-    t6 = time.perf_counter()
-    timer.add("geometry", t6 - t5)
+    times["step"] += t5 - t4
+    # ---- the proposed positions: accepted now (no guard) or checked in the background ----
+    g = st.geom.detach().numpy()
+    v_new = st.ls.solve_np(g) if st.ls is not None else g.copy()
     rec = {
         "stage": st.index,
         "iteration": it,
         "views": idx.tolist(),
         "loss": float(total.detach()),
         **{f"loss_{k}": float(t.detach()) for k, t in terms.items()},
-        "guard_halvings": guard_info["halvings"],
-        "guard_frozen": guard_info["frozen"],
-        "guard_reverted": bool(guard_info["reverted"]),
-        "t_geometry": (t1 - t0) + (t6 - t5),
-        "t_render": t2 - t1,
-        "t_loss": t3 - t2,
-        "t_backward": t4 - t3,
-        "t_step": t5 - t4,
+        "guard_halvings": 0,
+        "guard_frozen": 0,
+        "guard_reverted": False,
+        "t_guard_check": 0.0,
     }
+    if st.guard is None:
+        st.mesh.v_pos = v_new
+    else:
+        st.proposed, st.proposed_record = v_new, rec
+        st.pending = st.executor.submit(_timed_check, st.guard, v_new)
+    times["geometry"] += time.perf_counter() - t5
+    for phase in ("render", "loss", "backward", "step", "geometry"):
+        timer.add(phase, times[phase])
+        rec[f"t_{phase}"] = times[phase]
     return rec
 
 
@@ -341,6 +388,44 @@ def optimize_capture(
 
     st: _Stage | None = None
     prev_mesh, prev_maps = None, None
+    executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surface-guard")
+    try:
+        st = _run_stages(stages, start_stage, start_it, state, init, settings, views, bbox_scale, weights,
+                         tone_scale, light, timer, records, stage_infos, ckpt_dir, fp, executor, bar, callback)
+    finally:
+        executor.shutdown(wait=True)
+    if bar is not None:
+        bar.close()
+
+    # ---- outputs ----
+    with torch.no_grad():
+        final_maps = {k: v.numpy().astype(np.float32) for k, v in _map_values(settings, st.maps).items()}
+    final = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
+    topo = topology_report(final.v_pos, final.t_pos_idx)
+    from recon.optimize.guard import self_intersecting_faces
+
+    n_si = int(self_intersecting_faces(final.v_pos, final.t_pos_idx).sum())
+    wall = time.perf_counter() - t_start
+    summary = _summary(settings, stage_infos, records, timer, final, topo, n_si, wall, bbox_scale)
+    _save(ckpt_dir, fp, st, int(stages[-1].iterations), records, stage_infos, timer, done=True)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for k in MAP_NAMES:
+        write_exr(out_dir / f"{k}.exr", final_maps[k])
+    with atomic_path(out_dir / "log.jsonl") as tmp:
+        tmp.write_text("".join(json.dumps(r) + "\n" for r in records))
+    with atomic_path(out_dir / "summary.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=1))
+    write_obj(out_dir / "mesh.obj", final)
+    log.info("optimize: done in %.1f s (geometry processing %.1f%% of the iteration time)", wall,
+             100 * summary["phase_fraction"]["geometry"])
+    return summary
+
+
+def _run_stages(stages, start_stage, start_it, state, init, settings, views, bbox_scale, weights, tone_scale,
+                light, timer, records, stage_infos, ckpt_dir, fp, executor, bar, callback) -> _Stage:
+    """The coarse-to-fine loop; returns the last stage (its accepted mesh and maps)."""
+    st: _Stage | None = None
+    prev_mesh, prev_maps = None, None
     for si in range(start_stage, len(stages)):
         stage = stages[si]
         h = float(stage.edge_length) * bbox_scale
@@ -368,6 +453,7 @@ def optimize_capture(
                      st.targets.cameras[0].width, st.targets.cameras[0].height, h)
             stage_infos.append(_stage_info(st))
             _save(ckpt_dir, fp, st, 0, records, stage_infos, timer, done=False)
+        st.executor = executor
         for it in range(it0, int(stage.iterations)):
             rec = _iteration(st, it, settings, weights, tone_scale, light, timer)
             records.append(rec)
@@ -375,38 +461,16 @@ def optimize_capture(
                 bar.set_postfix(stage=si, loss=f"{rec['loss']:.4g}", refresh=False)
                 bar.update(1)
             if (it + 1) % int(settings.checkpoint_every) == 0 or it + 1 == int(stage.iterations):
+                t0 = time.perf_counter()
+                _resolve(st)  # checkpoints hold checked positions only
+                timer.add("geometry", time.perf_counter() - t0)
                 _save(ckpt_dir, fp, st, it + 1, records, stage_infos, timer, done=False)
             if callback is not None:
                 callback(rec)
         prev_mesh = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
         with torch.no_grad():
             prev_maps = {k: v.numpy().astype(np.float32) for k, v in _map_values(settings, st.maps).items()}
-    if bar is not None:
-        bar.close()
-
-    # ---- outputs ----
-    assert st is not None  # at least one stage always exists (settings guarantee it)
-    with torch.no_grad():
-        final_maps = {k: v.numpy().astype(np.float32) for k, v in _map_values(settings, st.maps).items()}
-    final = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
-    topo = topology_report(final.v_pos, final.t_pos_idx)
-    from recon.optimize.guard import self_intersecting_faces
-
-    n_si = int(self_intersecting_faces(final.v_pos, final.t_pos_idx).sum())
-    wall = time.perf_counter() - t_start
-    summary = _summary(settings, stage_infos, records, timer, final, topo, n_si, wall, bbox_scale)
-    _save(ckpt_dir, fp, st, int(stages[-1].iterations), records, stage_infos, timer, done=True)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    for k in MAP_NAMES:
-        write_exr(out_dir / f"{k}.exr", final_maps[k])
-    with atomic_path(out_dir / "log.jsonl") as tmp:
-        tmp.write_text("".join(json.dumps(r) + "\n" for r in records))
-    with atomic_path(out_dir / "summary.json") as tmp:
-        tmp.write_text(json.dumps(summary, indent=1))
-    write_obj(out_dir / "mesh.obj", final)
-    log.info("optimize: done in %.1f s (geometry processing %.1f%% of the iteration time)", wall,
-             100 * summary["phase_fraction"]["geometry"])
-    return summary
+    return st
 
 
 def optimize_from_dirs(
