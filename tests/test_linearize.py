@@ -163,7 +163,7 @@ def test_capture_from_synth_generator(tmp_path):
     camera space (inverse of the stage's camera_to_rec709). In Rec.709, the foreground
     luminance and channel means are checked; the scale is the generator's documented one (1).
     """
-    capture = pytest.importorskip("recon.synth.capture")
+    from recon.synth import capture
     settings = capture.SynthSettings(
         object="blob", n_views=4, width=128, height=96, spp=16, format="dng",
         exposure_variation=1.0, noise=False, mesh_level=4, texture_size=128, seed=1,
