@@ -322,7 +322,7 @@ def optimize_capture(
     cameras_json: str | os.PathLike,
     init_mesh_obj: str | os.PathLike,
     out_dir: str | os.PathLike,
-    settings: OptimizeSettings = OptimizeSettings(),
+    settings: OptimizeSettings | None = None,
     progress: bool = True,
     callback: Callable[[dict], None] | None = None,
 ) -> dict:
@@ -338,7 +338,7 @@ def optimize_capture(
     init_mesh_obj : ``uv/mesh.obj`` (positions are used; the stage makes its own atlas).
     out_dir : ``results/<capture>/optimize``; gets ``mesh.obj``, ``diffuse.exr``, ``specular.exr``,
         ``roughness.exr``, ``log.jsonl``, ``summary.json`` and ``checkpoints/``.
-    settings : OptimizeSettings
+    settings : OptimizeSettings (None = the defaults)
     progress : show a tqdm bar (loss and ETA).
     callback : called after every iteration with its log record (dict).
 
@@ -350,6 +350,7 @@ def optimize_capture(
     ends with the same result as an uninterrupted run.
     """
     t_start = time.perf_counter()
+    settings = settings if settings is not None else OptimizeSettings()
     out_dir = Path(out_dir)
     ckpt_dir = out_dir / "checkpoints"
     cams = load_cameras(cameras_json)
@@ -386,8 +387,6 @@ def optimize_capture(
 
         bar = tqdm(total=total_iters, initial=done_iters, desc="optimize", unit="it", dynamic_ncols=True)
 
-    st: _Stage | None = None
-    prev_mesh, prev_maps = None, None
     executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surface-guard")
     try:
         st = _run_stages(stages, start_stage, start_it, state, init, settings, views, bbox_scale, weights,
@@ -479,7 +478,7 @@ def optimize_from_dirs(
     cameras_json: str | os.PathLike,
     init_mesh_obj: str | os.PathLike,
     out_dir: str | os.PathLike,
-    settings: OptimizeSettings = OptimizeSettings(),
+    settings: OptimizeSettings | None = None,
     progress: bool = True,
 ) -> dict:
     """:func:`optimize_capture` over every view of ``cameras_json`` found in the stage folders.

@@ -213,7 +213,7 @@ def specular_bilateral_loss(
     # ---- the weighted average of specular and the L1 distance to it ----
     s_cf = specular.permute(2, 0, 1).contiguous()
     sp = pad(s_cf, (r, r, r, r))
-    avg = sum(w * sp[:, r + dy:r + dy + H, r + dx:r + dx + W] for w, (dy, dx) in zip(weights, offsets))
+    avg = sum(w * sp[:, r + dy:r + dy + H, r + dx:r + dx + W] for w, (dy, dx) in zip(weights, offsets, strict=True))
     err = (s_cf - avg).abs().mean(0) * vq
     return err.sum() / vq.sum().clamp(min=1.0)
 

@@ -113,7 +113,7 @@ def make_capture(root: Path, n_views: int = 12, size: int = 64, spp: int = 64, t
                               torch.from_numpy(spec), torch.from_numpy(rough), cams, 1.0, seed=seed).numpy()
     masks = coverage_masks(gt, cams)
     images, mask_paths = [], []
-    for c, img, m in zip(cams, imgs, masks):
+    for c, img, m in zip(cams, imgs, masks, strict=True):
         p = root / c.image
         write_exr(p, img)
         mp = root / "masks" / f"{Path(c.image).stem}.png"

@@ -1,7 +1,6 @@
 import time
 
 import numpy as np
-import pytest
 
 from recon.optimize.guard import SurfaceGuard, self_intersecting_faces
 from recon.optimize.regularizers import MeshTopology

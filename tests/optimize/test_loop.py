@@ -1,7 +1,6 @@
 """The optimize stage end to end on a tiny synthetic capture: outputs, kill/resume, improvement."""
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -111,7 +110,7 @@ def test_outputs_resume_after_kill_and_match(capture, tmp_path):
     la = [json.loads(x) for x in (a / "log.jsonl").read_text().splitlines()]
     lb = [json.loads(x) for x in (b / "log.jsonl").read_text().splitlines()]
     assert len(la) == len(lb) == 8
-    for ra, rb in zip(la, lb):
+    for ra, rb in zip(la, lb, strict=True):
         assert {k: v for k, v in ra.items() if not k.startswith("t_")} == {
             k: v for k, v in rb.items() if not k.startswith("t_")}
     assert got["final_losses"] == ref["final_losses"]
