@@ -110,8 +110,7 @@ def _initial_stage_mesh(init: Mesh, settings: OptimizeSettings, stage: StageSett
             "check uv/mesh.obj (init_mesh stage) or use a larger first-stage edge_length"
         )
     T = int(stage.texture_size)
-    v_tex, t_tex_idx = unwrap(v, f, T)
-    mesh = Mesh(v, f, v_tex, t_tex_idx)
+    mesh = unwrap(v, f, T)
     face, _, _ = rasterize_atlas(mesh, T)
     maps = {
         "diffuse": constant_map(T, 3, settings.init_diffuse),

@@ -5,8 +5,10 @@ Between stages the surface is remeshed isotropically to a smaller target edge le
 baked onto the new atlas from the old mesh: for each texel of the new atlas, its 3D point on
 the new surface -> the closest point on the old surface -> the old UV there -> a bilinear
 lookup in the old map. Baking straight into the new, larger map is the paper's bilinear
-upsampling and the transfer in one resampling. Texels outside the charts (gutters) take the
-value of the nearest texel inside, so bilinear lookups at chart borders see no stale values.
+upsampling and the transfer in one resampling. Texels up to 1.5 texels outside a chart are
+baked from the chart's own surface (the closest point of its nearest triangle), so bilinear
+lookups at chart borders read the right surface; texels farther out (gutters) take the value of
+the nearest baked texel.
 
 UVs follow the OBJ convention (DESIGN section 2): texel (row i, col j) of an H x W map sits at
 u = (j + 0.5)/W, v = 1 - (i + 0.5)/H.
@@ -64,25 +66,44 @@ def remesh(v_pos: np.ndarray, t_pos_idx: np.ndarray, edge_length: float, iterati
 
 
 # ---- UV atlas ----
-def unwrap(v_pos: np.ndarray, t_pos_idx: np.ndarray, texture_size: int, padding: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """xatlas charts for ``texture_size``: ``(v_tex (T, 2), t_tex_idx (F, 3))`` in the OBJ convention.
+def unwrap(v_pos: np.ndarray, t_pos_idx: np.ndarray, texture_size: int, padding: int = 2,
+           max_attempts: int = 12) -> Mesh:
+    """The mesh with an xatlas atlas that fits one ``texture_size`` x ``texture_size`` map.
 
-    Faces keep their order, so ``t_pos_idx`` stays valid beside the returned UV indices.
+    ``padding`` empty texels separate the charts in the map itself: when xatlas's atlas comes
+    out larger than the map, or spills onto a second page (overlapping UVs), it is packed again
+    at fewer texels per unit. Faces keep their order (checked).
     """
     import xatlas
 
-    atlas = xatlas.Atlas()
-    atlas.add_mesh(np.asarray(v_pos, dtype=np.float32), np.asarray(t_pos_idx, dtype=np.uint32))
-    pack = xatlas.PackOptions()
-    pack.resolution = int(texture_size)
-    pack.padding = int(padding)
-    pack.bilinear = True
-    atlas.generate(pack_options=pack)
+    T = int(texture_size)
+    v32 = np.asarray(v_pos, dtype=np.float32)
+    f32 = np.asarray(t_pos_idx, dtype=np.uint32)
+    tpu = 0.0  # xatlas's own choice first
+    for _ in range(int(max_attempts)):
+        atlas = xatlas.Atlas()
+        atlas.add_mesh(v32, f32)
+        pack = xatlas.PackOptions()
+        pack.resolution = T
+        pack.padding = int(padding)
+        pack.bilinear = True
+        if tpu > 0:
+            pack.texels_per_unit = tpu
+        atlas.generate(xatlas.ChartOptions(), pack)
+        w, h = int(atlas.width), int(atlas.height)
+        if atlas.atlas_count == 1 and max(w, h) <= T:
+            break
+        shrink = min(0.97, T / max(w, h) * 0.97) if max(w, h) > T else 0.9
+        tpu = float(atlas.texels_per_unit) * shrink
+    else:
+        raise RemeshError(f"xatlas could not pack the charts into one {T}x{T} map; use a larger texture_size")
     vmapping, indices, uvs = atlas[0]
     if indices.shape != np.shape(t_pos_idx) or not np.array_equal(np.asarray(vmapping)[indices], t_pos_idx):
         raise RemeshError("xatlas changed the face order or connectivity; cannot pair UVs with faces")
-    # The chart layout is used as it is: it only has to be the same for baking and rendering.
-    return np.asarray(uvs, dtype=np.float64), np.asarray(indices, dtype=np.int64)
+    # xatlas's uvs are normalized to its w x h atlas (y down); the map is T x T with v up
+    texel = np.asarray(uvs, dtype=np.float64) * np.array([w, h])
+    v_tex = np.stack([texel[:, 0] / T, 1.0 - texel[:, 1] / T], axis=1)
+    return Mesh(v_pos, t_pos_idx, v_tex, np.asarray(indices, dtype=np.int64))
 
 
 def texel_centers_uv(size: int) -> np.ndarray:
@@ -92,14 +113,19 @@ def texel_centers_uv(size: int) -> np.ndarray:
     return np.stack([u, v], axis=-1)
 
 
-def rasterize_atlas(mesh: Mesh, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Which face covers each texel center of a ``size`` x ``size`` map.
+def rasterize_atlas(mesh: Mesh, size: int, dilate: float = 1.5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which face each texel of a ``size`` x ``size`` map belongs to, and where it is in 3D.
+
+    A texel belongs to the face whose UV triangle holds its center, or, within ``dilate``
+    texels outside the charts, to the nearest UV triangle (its point then is the closest point
+    of that triangle). Bilinear lookups inside a chart touch texels up to one texel outside
+    it, so these rim texels must carry the chart's own surface, not a neighbouring chart's.
 
     Returns
     -------
-    face : (size, size) int64, -1 outside the charts
-    bary : (size, size, 3) float64 barycentric weights of the texel center in that face
-    points : (size, size, 3) float64 the 3D point of the texel center (0 outside)
+    face : (size, size) int64, -1 for texels farther than ``dilate`` from every chart
+    bary : (size, size, 3) float64 barycentric weights in that face
+    points : (size, size, 3) float64 the 3D point of the texel (0 outside)
     """
     import open3d as o3d
 
@@ -116,13 +142,23 @@ def rasterize_atlas(mesh: Mesh, size: int) -> tuple[np.ndarray, np.ndarray, np.n
     hit = scene.cast_rays(o3d.core.Tensor(rays))
     face = hit["primitive_ids"].numpy().astype(np.int64)
     ok = np.isfinite(hit["t_hit"].numpy())
-    face[~ok] = -1
     buv = hit["primitive_uvs"].numpy().astype(np.float64)
+    out = ~ok
+    if dilate > 0 and out.any():
+        q = np.zeros((int(out.sum()), 3), dtype=np.float32)
+        q[:, :2] = c[out]
+        near = scene.compute_closest_points(o3d.core.Tensor(q))
+        d = np.linalg.norm(near["points"].numpy()[:, :2] - c[out], axis=1)
+        close = d <= dilate / size
+        idx = np.flatnonzero(out)[close]
+        face[idx] = near["primitive_ids"].numpy().astype(np.int64)[close]
+        buv[idx] = near["primitive_uvs"].numpy().astype(np.float64)[close]
+        ok[idx] = True
+    face[~ok] = -1
     bary = np.stack([1.0 - buv[:, 0] - buv[:, 1], buv[:, 0], buv[:, 1]], axis=1)
     bary[~ok] = 0.0
     points = np.zeros((len(c), 3))
-    fo = face[ok]
-    points[ok] = np.einsum("nk,nkd->nd", bary[ok], mesh.v_pos[mesh.t_pos_idx[fo]])
+    points[ok] = np.einsum("nk,nkd->nd", bary[ok], mesh.v_pos[mesh.t_pos_idx[face[ok]]])
     return face.reshape(size, size), bary.reshape(size, size, 3), points.reshape(size, size, 3)
 
 
@@ -201,7 +237,6 @@ def remesh_and_rebake(old: Mesh, old_maps: dict[str, np.ndarray], edge_length: f
             f"({topo['non_two_manifold_edges']} edges, {topo['non_two_manifold_vertices']} vertices); "
             "use a larger edge_length for this stage"
         )
-    v_tex, t_tex_idx = unwrap(v, f, texture_size)
-    new = Mesh(v, f, v_tex, t_tex_idx)
+    new = unwrap(v, f, texture_size)
     maps, covered = bake(old, old_maps, new, texture_size)
     return new, maps, covered

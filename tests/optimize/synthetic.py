@@ -98,7 +98,7 @@ def make_capture(root: Path, n_views: int = 12, size: int = 64, spp: int = 64, t
 
     root = Path(root)
     gt = blob_mesh(subdivisions)
-    gt.v_tex, gt.t_tex_idx = unwrap(gt.v_pos, gt.t_pos_idx, texture_size)
+    gt = unwrap(gt.v_pos, gt.t_pos_idx, texture_size)
     face, _, pts = rasterize_atlas(gt, texture_size)
     cov = face >= 0
     diffuse = np.zeros((texture_size, texture_size, 3))

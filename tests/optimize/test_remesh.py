@@ -9,8 +9,9 @@ from synthetic import blob_mesh, diffuse_of, icosphere
 @pytest.fixture(scope="module")
 def blob():
     m = blob_mesh(4)
-    m.v_tex, m.t_tex_idx = rm.unwrap(m.v_pos, m.t_pos_idx, 128)
-    return m
+    u = rm.unwrap(m.v_pos, m.t_pos_idx, 128)
+    np.testing.assert_array_equal(u.t_pos_idx, m.t_pos_idx)  # nothing dropped, face order kept
+    return u
 
 
 def baked_analytic(mesh: Mesh, size: int) -> np.ndarray:
@@ -37,14 +38,30 @@ def test_remesh_hits_the_target_edge_length():
 def test_unwrap_and_rasterize(blob):
     assert blob.v_tex.min() >= 0 and blob.v_tex.max() <= 1
     assert blob.t_tex_idx.shape == blob.t_pos_idx.shape
-    face, bary, pts = rm.rasterize_atlas(blob, 128)
+    face, bary, pts = rm.rasterize_atlas(blob, 128, dilate=0)
     cov = face >= 0
-    assert 0.4 < cov.mean() < 0.95
+    assert 0.3 < cov.mean() < 0.95
     np.testing.assert_allclose(bary[cov].sum(1), 1.0, atol=1e-6)
     assert bary[cov].min() > -1e-5
     # texel points lie on the surface, at the texel center's UV
     uv = rm.surface_uv(blob, pts[cov])
     np.testing.assert_allclose(uv, rm.texel_centers_uv(128)[cov], atol=2e-4)
+    # no two charts overlap: every texel center lies in at most one UV triangle
+    import open3d as o3d
+
+    uv3 = np.concatenate([blob.v_tex, np.zeros((len(blob.v_tex), 1))], 1).astype(np.float32)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(uv3), o3d.core.Tensor(blob.t_tex_idx.astype(np.uint32)))
+    c = rm.texel_centers_uv(512).reshape(-1, 2)
+    rays = np.zeros((len(c), 6), np.float32)
+    rays[:, :2], rays[:, 2], rays[:, 5] = c, 1.0, -1.0
+    assert scene.count_intersections(o3d.core.Tensor(rays)).numpy().max() <= 1
+    # dilation: a rim of texels just outside the charts is baked from the chart's own surface
+    face_d, bary_d, pts_d = rm.rasterize_atlas(blob, 128, dilate=1.5)
+    rim = (face_d >= 0) & ~cov
+    assert rim.sum() > 0.05 * cov.sum()
+    assert bary_d[rim].min() > -1e-5  # clamped onto the nearest triangle
+    np.testing.assert_array_equal(face_d[cov], face[cov])
 
 
 def test_bilinear_lookup_and_gutters():
@@ -64,7 +81,12 @@ def test_bilinear_lookup_and_gutters():
 def test_bake_onto_the_same_atlas_is_exact(blob):
     tex = baked_analytic(blob, 128)
     out, cov = rm.bake(blob, {"diffuse": tex}, blob, 128)
-    np.testing.assert_allclose(out["diffuse"][cov], tex[cov], atol=2e-4)
+    inside = rm.rasterize_atlas(blob, 128, dilate=0)[0] >= 0  # texel centers inside triangles
+    assert cov[inside].all()
+    np.testing.assert_allclose(out["diffuse"][inside], tex[inside], atol=2e-4)
+    # the rim texels hold the colour of the chart's own surface (a smooth function: close)
+    rim = cov & ~inside
+    assert np.abs(out["diffuse"][rim] - tex[rim]).mean() < 0.01
 
 
 def test_stage_change_keeps_what_was_learned(blob):
