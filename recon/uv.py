@@ -113,10 +113,14 @@ def unwrap(mesh: Mesh, settings: UVSettings = UVSettings()) -> tuple[Mesh, dict]
             pack.texels_per_unit = tpu
         atlas.generate(xatlas.ChartOptions(), pack)
         w, h = int(atlas.width), int(atlas.height)
-        if max(w, h) <= T:
+        # One page only: with texels_per_unit set, xatlas may spill charts onto a second
+        # page whose UVs overlap the first.
+        if max(w, h) <= T and atlas.atlas_count == 1:
             break
-        tpu = float(atlas.texels_per_unit) * T / max(w, h) * 0.97
-        log.info("atlas %dx%d exceeds %d texels: packing again at %.2f texels per unit", w, h, T, tpu)
+        shrink = T / max(w, h) if max(w, h) > T else 1.0
+        tpu = float(atlas.texels_per_unit) * shrink * (0.97 if atlas.atlas_count == 1 else 0.85)
+        log.info("atlas %dx%d on %d page(s) does not fit one %d-texel page: packing again at %.2f "
+                 "texels per unit", w, h, atlas.atlas_count, T, tpu)
     else:
         raise UVError(f"xatlas could not fit the charts into {T}x{T} texels in {settings.max_pack_attempts} "
                       "attempts; raise texture_size or lower padding")
