@@ -7,15 +7,10 @@ import subprocess
 import sys
 
 import pygltflib
-import pytest
 
 from recon.export import validate_usdz
 
 
-@pytest.mark.skipif(shutil.which("snakemake") is None and
-                    subprocess.run([sys.executable, "-m", "snakemake", "--version"],
-                                   capture_output=True).returncode != 0,
-                    reason="snakemake not installed")
 def test_export_rule(model, tmp_path, repo_root):
     captures, results = tmp_path / "captures", tmp_path / "results"
     (captures / "demo" / "images").mkdir(parents=True)

@@ -14,7 +14,6 @@ from recon.optimize import OptimizeSettings, StageSettings, optimize_capture, se
 from recon.optimize.guard import self_intersecting_faces
 from recon.optimize.remesh import is_manifold
 
-pytest.importorskip("recon.render", reason="recon.render (the renderer) is not available")
 
 HERE = Path(__file__).parent
 REPO = HERE.parents[1]
@@ -196,9 +195,7 @@ def test_from_dirs_pairs_views_masks_and_clipped_pixels(capture, tmp_path):
 def test_presets_build(preset):
     from recon.config import load_preset
 
-    section = load_preset(preset).get("optimize")
-    if section is None:
-        pytest.skip(f"config/presets/{preset}.yaml has no optimize section yet")
+    section = load_preset(preset)["optimize"]
     s = settings_from_dict(section, f"{preset}.yaml")
     assert len(s.stages) >= 1 and all(st.iterations > 0 for st in s.stages)
     edges = [st.edge_length for st in s.stages]

@@ -9,14 +9,8 @@ import subprocess
 import sys
 import time
 
-import pytest
 
 
-def _snakemake_missing() -> bool:
-    return subprocess.run([sys.executable, "-m", "snakemake", "--version"], capture_output=True).returncode != 0
-
-
-@pytest.mark.skipif(_snakemake_missing(), reason="snakemake not installed")
 def test_report_rule(scene, tmp_path, repo_root):
     captures, results = tmp_path / "captures", tmp_path / "results"
     cap = captures / "cap"
