@@ -103,6 +103,12 @@ class SynthSettings:
         Size of the square ground-truth maps.
     texture_frequency : float
         Scale of the albedo pattern (about one dot per (1/frequency)^3, see MaterialFields).
+    albedo, specular, roughness : float or None
+        Constant diffuse albedo (grey, no pattern), specular albedo or roughness everywhere
+        instead of the spatially varying fields (None): ``specular=0`` is a purely diffuse object.
+    scale : float
+        Scene scale: the object, the camera distances and the ground truth are multiplied by it
+        and the light intensity by ``scale**2``, so the photos are the same at every scale.
     """
 
     object: str = "blob"
@@ -124,6 +130,10 @@ class SynthSettings:
     mesh_level: int = 6
     texture_size: int = 1024
     texture_frequency: float = 16.0
+    albedo: float | None = None
+    specular: float | None = None
+    roughness: float | None = None
+    scale: float = 1.0
 
     def __post_init__(self):
         object.__setattr__(self, "view_z_range", tuple(float(z) for z in self.view_z_range))
@@ -160,6 +170,14 @@ class SynthSettings:
             raise SynthError(f"texture_size={self.texture_size}: use 16 to 8192")
         if self.texture_frequency <= 0:
             raise SynthError(f"texture_frequency={self.texture_frequency}: must be positive")
+        for name in ("albedo", "specular"):
+            v = getattr(self, name)
+            if v is not None and not 0.0 <= v <= 1.0:
+                raise SynthError(f"{name}={v}: use a value in [0, 1] (or leave it out for the spatially varying field)")
+        if self.roughness is not None and not R_MIN <= self.roughness <= 1.0:
+            raise SynthError(f"roughness={self.roughness}: use a value in [{R_MIN}, 1]")
+        if not (np.isfinite(self.scale) and 1e-6 <= self.scale <= 1e6):
+            raise SynthError(f"scale={self.scale}: use a scene scale in [1e-6, 1e6]")
 
 
 PRESETS: dict[str, SynthSettings] = {
@@ -196,10 +214,10 @@ def make_cameras(settings: SynthSettings) -> CameraSet:
     K = intrinsics(settings.width, settings.height, settings.fov)
     frames = []
     for i, d in enumerate(fibonacci_directions(settings.n_views, settings.view_z_range)):
-        eye = settings.distance * d
+        eye = settings.distance * settings.scale * d
         frames.append(Camera(f"images/{i:04d}{ext}", settings.width, settings.height, K.copy(),
                              look_at(eye, [0.0, 0.0, 0.0], up=(0.0, 0.0, 1.0))))
-    return CameraSet(tuple(frames), float(settings.light_intensity))
+    return CameraSet(tuple(frames), float(settings.light_intensity * settings.scale**2))
 
 
 # ---- exposures ----
@@ -246,8 +264,11 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
     log.info("synth: %s object, level %d", s.object, s.mesh_level)
     mesh = make_object(s.object, s.mesh_level, s.seed)
     mesh = unwrap(mesh, resolution=s.texture_size, padding=3)
-    fields = MaterialFields(seed=s.seed, frequency=s.texture_frequency)
+    fields = MaterialFields(seed=s.seed, frequency=s.texture_frequency, albedo=s.albedo,
+                            specular=s.specular, roughness=s.roughness)
     (diffuse, specular, roughness), _ = bake(mesh, fields.evaluate, s.texture_size, pad=4)
+    if s.scale != 1.0:  # the fields were evaluated at unit scale
+        mesh = dataclasses.replace(mesh, v_pos=mesh.v_pos * s.scale)
     roughness = np.clip(roughness, R_MIN, 1.0)
     textures = {"diffuse": diffuse, "specular": specular, "roughness": roughness}
     cams = make_cameras(s)
@@ -264,7 +285,7 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
         (tmp / "gt").mkdir()
         for i, cam in enumerate(cams.frames):
             log.info("synth: view %d/%d", i + 1, len(cams))
-            rgba = render_reference(mesh, textures, cam, s.light_intensity, s.spp,
+            rgba = render_reference(mesh, textures, cam, cams.light_intensity, s.spp,
                                     seed=s.seed * 100003 + i, alpha=True)
             rgb = np.ascontiguousarray(rgba[:, :, :3])
             path = tmp / cam.image
@@ -287,7 +308,7 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
             if s.write_gt_linear:
                 write_exr(tmp / "gt" / "linear" / f"{cam.stem}.exr", rgb * np.float32(linear_scale))
         # the light intensity that fits the linearized images (scale 1 by construction)
-        gt_cams = CameraSet(cams.frames, float(s.light_intensity * linear_scale))
+        gt_cams = CameraSet(cams.frames, float(cams.light_intensity * linear_scale))
         save_cameras(tmp / "gt" / "cameras.json", gt_cams)
         if s.write_cameras:
             save_cameras(tmp / "cameras.json", gt_cams)

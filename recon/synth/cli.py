@@ -36,6 +36,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="per-view exposure offsets in stops (DNG)")
     p.add_argument("--mesh-level", type=int, dest="mesh_level", help="20 * 4**level faces")
     p.add_argument("--texture-size", type=int, dest="texture_size")
+    p.add_argument("--albedo", type=float, help="constant grey diffuse albedo instead of the pattern")
+    p.add_argument("--specular", type=float, help="constant specular albedo (0 = purely diffuse object)")
+    p.add_argument("--roughness", type=float, help="constant roughness instead of the three sectors")
+    p.add_argument("--scale", type=float, help="scene scale (object and cameras; light scaled by scale^2)")
     p.add_argument("--cameras", dest="write_cameras", action="store_true", default=None,
                    help="write the top-level cameras.json")
     p.add_argument("--no-cameras", dest="write_cameras", action="store_false",
@@ -66,7 +70,8 @@ def command_line(args: argparse.Namespace) -> str:
             "fov": "--fov", "distance": "--distance", "format": "--format", "spp": "--spp",
             "seed": "--seed", "light_intensity": "--light-intensity",
             "exposure_variation": "--exposure-variation", "mesh_level": "--mesh-level",
-            "texture_size": "--texture-size"}
+            "texture_size": "--texture-size", "albedo": "--albedo", "specular": "--specular",
+            "roughness": "--roughness", "scale": "--scale"}
     flags = {"write_cameras": "cameras", "write_masks": "masks", "write_gt_linear": "gt-linear",
              "noise": "noise"}
     parts = ["python -m recon synth", str(args.out_dir)]

@@ -146,3 +146,27 @@ def test_presets_are_valid():
     assert {"demo", "blob", "torus", "smooth"} <= set(PRESETS)
     demo = PRESETS["demo"]
     assert demo.format == "dng" and not demo.write_cameras and 24 <= demo.n_views <= 32
+
+
+def test_scene_scale_leaves_the_photos_unchanged(exr_capture, tmp_path):
+    """scale s: object, cameras and gt mesh times s, light times s^2 -> the same photos."""
+    s = 1e-3
+    out = make_capture(tmp_path / "tiny", dataclasses.replace(SMALL, scale=s))
+    for stem in ("0000", "0003"):
+        a = read_exr(exr_capture / "images" / f"{stem}.exr")
+        b = read_exr(out / "images" / f"{stem}.exr")
+        np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-6)
+    ca, cb = load_cameras(exr_capture / "cameras.json"), load_cameras(out / "cameras.json")
+    assert cb.light_intensity == pytest.approx(ca.light_intensity * s**2)
+    np.testing.assert_allclose(read_obj(out / "gt" / "mesh.obj").v_pos,
+                               read_obj(exr_capture / "gt" / "mesh.obj").v_pos * s, rtol=1e-6, atol=1e-12)
+
+
+def test_constant_material_overrides(tmp_path):
+    out = make_capture(tmp_path / "diffuse", dataclasses.replace(SMALL, specular=0.0, roughness=1.0, albedo=0.5))
+    assert read_exr(out / "gt" / "specular.exr").max() == 0.0
+    np.testing.assert_allclose(read_exr(out / "gt" / "roughness.exr"), 1.0)
+    np.testing.assert_allclose(read_exr(out / "gt" / "diffuse.exr"), 0.5)
+    for bad in (dict(specular=1.5), dict(albedo=-0.1), dict(roughness=0.0), dict(scale=0.0)):
+        with pytest.raises(SynthError, match=next(iter(bad))):
+            dataclasses.replace(SMALL, **bad)
