@@ -8,6 +8,8 @@
   then lowered and the atlas packed again until it fits, so the padding holds in texels of
   the real texture (a bilinear lookup anywhere inside a chart touches only that chart's
   texels when padding >= 2).
+- xatlas sees the mesh scaled to a unit bounding box (its float32 epsilons are absolute), so
+  the atlas is the same in any units; ``texels_per_unit`` is reported in the mesh's units.
 - Positions keep their topology: xatlas splits vertices at seams, but ``t_pos_idx`` maps back
   through ``vmapping`` to the unsplit vertices (the mesh stays watertight) and only the UVs
   (``v_tex``, ``t_tex_idx``) are split.
@@ -99,7 +101,14 @@ def unwrap(mesh: Mesh, settings: UVSettings = UVSettings()) -> tuple[Mesh, dict]
     if dropped:
         log.info("dropped %d small component(s) before unwrapping", dropped)
     T = settings.texture_size
-    v32 = mesh.v_pos.astype(np.float32)
+    # xatlas works in float32 with absolute epsilons (faces below ~1e-7 in area count as
+    # degenerate): unwrap a copy scaled to a unit bounding box, so the atlas does not depend
+    # on the scene's units (a 1 mm object unwraps like a 1 m one)
+    lo, hi = mesh.bbox()
+    extent = float(np.max(hi - lo))
+    if not extent > 0:
+        raise UVError("the mesh has an empty bounding box (all vertices at one point)")
+    v32 = ((mesh.v_pos - 0.5 * (lo + hi)) / extent).astype(np.float32)
     f32 = mesh.t_pos_idx.astype(np.uint32)
     tpu = 0.0  # let xatlas choose from the resolution first
     for attempt in range(1, settings.max_pack_attempts + 1):  # noqa: B007 (reported below)
@@ -138,7 +147,7 @@ def unwrap(mesh: Mesh, settings: UVSettings = UVSettings()) -> tuple[Mesh, dict]
         "atlas_height": h,
         "texture_size": T,
         "padding": settings.padding,
-        "texels_per_unit": float(atlas.texels_per_unit),
+        "texels_per_unit": float(atlas.texels_per_unit) / extent,  # per unit of the mesh's frame
         "dropped_components": dropped,
         "attempts": attempt,
         "faces": int(len(out.t_pos_idx)),

@@ -103,3 +103,16 @@ def test_errors(tmp_path):
     with pytest.raises(ruv.UVError, match=r"missing\.ply: file not found; rerun the init_mesh stage"):
         ruv.run_uv(tmp_path / "missing.ply", tmp_path / "uv")
     assert not (tmp_path / "uv").exists()
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e3])
+def test_atlas_does_not_depend_on_units(blob, scale):
+    """Regression: at 1e-3 units xatlas took every face as degenerate (float32, absolute area
+    epsilon) and no packing fitted; the atlas must be that of the same mesh at unit scale."""
+    settings = ruv.UVSettings(texture_size=128)
+    ref, ref_stats = ruv.unwrap(blob, settings)
+    out, stats = ruv.unwrap(Mesh(blob.v_pos * scale, blob.t_pos_idx), settings)
+    np.testing.assert_array_equal(out.t_tex_idx, ref.t_tex_idx)
+    np.testing.assert_allclose(out.v_tex, ref.v_tex, atol=1e-6)
+    assert stats["charts"] == ref_stats["charts"] and stats["attempts"] == ref_stats["attempts"]
+    assert stats["texels_per_unit"] == pytest.approx(ref_stats["texels_per_unit"] / scale, rel=1e-6)
