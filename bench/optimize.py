@@ -3,9 +3,14 @@
 Runs ``recon.optimize.optimize_capture`` on a capture made by ``python -m recon synth`` (known
 cameras, masks, gt/), from the visual-hull initial mesh (``recon.init_mesh``) or a given one,
 and reports against the ground truth (DESIGN section 5): accuracy / completeness of the initial
-and the final mesh, their ratio, novel-view image RMSE (sRGB, union of masks) over views that
-were not optimized on, manifoldness and self-intersections, and the phase timings (the
-geometry-processing share against the paper's 55-70%).
+and the final mesh, their ratio (``recon.metrics.chamfer``: distances divided by the longest
+side of the ground truth's bounding box, the paper's unit bounding box), novel-view image RMSE
+(sRGB, union of masks) over views that were not optimized on, the relighting RMSE over the same
+views under the procedural environment map of ``recon.render.envmap`` (and its Monte Carlo
+noise floor: the ground truth against itself with other seeds, cached beside the capture),
+texture errors, manifoldness and self-intersections, the phase timings (the
+geometry-processing share against the paper's 55-70%), the peak memory (ru_maxrss) and the
+material model the optimizer chose (when it reports one).
 
     python -m recon synth /tmp/blob --views 40 --res 256 --height 256 --format exr --object blob \
         --cameras --masks --no-noise
@@ -14,7 +19,8 @@ geometry-processing share against the paper's 55-70%).
     python bench/optimize.py /tmp/blob --preset balanced --crude 0.04 --out bench/out/crude
 
 ``--crude A`` replaces the initial mesh by a smoothed, shrunk visual hull whose accuracy is
-about A (the "crude initial mesh" scenario).
+about A (the "crude initial mesh" scenario). ``--relight-spp 0`` skips the relighting metric.
+``bench/suite.py`` runs this script over objects x presets.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import resource
 import sys
 import time
 from pathlib import Path
@@ -33,6 +40,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from recon.config import load_preset  # noqa: E402
+from recon.io.atomic import atomic_path  # noqa: E402
 from recon.io.cameras import Camera, load_cameras, look_at  # noqa: E402
 from recon.io.images import read_exr  # noqa: E402
 from recon.io.mesh import Mesh, read_mesh, write_obj  # noqa: E402
@@ -40,6 +48,7 @@ from recon.metrics import chamfer, image_rmse  # noqa: E402
 from recon.optimize import optimize_capture, settings_from_dict  # noqa: E402
 from recon.optimize.guard import self_intersecting_faces  # noqa: E402
 from recon.optimize.remesh import topology_report  # noqa: E402
+from recon.render.envmap import envmap_image, relight_rmse  # noqa: E402
 
 log = logging.getLogger("bench.optimize")
 
@@ -104,6 +113,30 @@ def texture_errors(rec: Mesh, maps: dict, gt: Mesh, gt_maps: dict, n: int = 2000
     return out
 
 
+def relight_noise_floor(cap: Path, gt: Mesh, gt_maps: dict, novel: list[Camera], spp: int) -> dict:
+    """The ground truth against itself under the envmap with independent seeds (cached).
+
+    An upper bound on what Monte Carlo noise adds to ``relight_rmse``: the metric itself renders
+    both sides with the same seeds, which cancels most of the noise where they agree.
+    """
+    cache = cap.parent / f"{cap.name}_bench" / f"relight_floor_n{len(novel)}_spp{spp}.json"
+    if cache.is_file():
+        return json.loads(cache.read_text())
+    r = relight_rmse(gt, gt_maps, gt, gt_maps, novel, envmap_image(), spp=spp, seed_gt=100_003)
+    with atomic_path(cache) as tmp:
+        tmp.write_text(json.dumps(r))
+    return r
+
+
+def material_report(summary: dict, out: Path) -> dict:
+    """``material_model`` / ``material_selection`` of the optimize summary, where it has them."""
+    path = out / "optimize" / "summary.json"
+    src = dict(summary)
+    if path.is_file():
+        src = {**json.loads(path.read_text()), **src}
+    return {k: src[k] for k in ("material_model", "material_selection") if k in src}
+
+
 def crude_mesh(mesh: Mesh, gt: Mesh, target: float) -> Mesh:
     """Shrink + smooth the visual hull until its accuracy is about ``target`` (bisection on the shrink)."""
     import pymeshlab
@@ -137,6 +170,8 @@ def main(argv=None) -> int:
     p.add_argument("--crude", type=float, help="use a crude initial mesh of about this accuracy")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--novel", type=int, default=8)
+    p.add_argument("--relight-spp", type=int, default=64,
+                   help="samples per pixel of the envmap relighting renders (0: skip the metric)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
 
@@ -182,16 +217,31 @@ def main(argv=None) -> int:
     rmse = [image_rmse(a, b, ma, mb) for a, b, ma, mb in zip(img_rec, img_gt, m_rec, m_gt, strict=True)]
     topo = topology_report(final.v_pos, final.t_pos_idx)
     tex = texture_errors(final, maps, gt, gt_maps)
+    relight = {}
+    if args.relight_spp > 0:
+        t1 = time.perf_counter()
+        rl = relight_rmse(final, maps, gt, gt_maps, novel, envmap_image(), spp=args.relight_spp)
+        floor = relight_noise_floor(cap, gt, gt_maps, novel, args.relight_spp)
+        relight = {
+            "relight_rmse": rl["mean"],
+            "relight_rmse_per_view": rl["per_view"],
+            "relight_noise_floor": floor["mean"],
+            "relight_spp": args.relight_spp,
+            "relight_seconds": time.perf_counter() - t1,
+        }
     result = {
         "capture": str(cap),
         "preset": args.preset,
         "overrides": args.set,
         "init": str(init_path),
+        # chamfer() divides by the GT bbox's longest side: the DESIGN section 5 unit scale
+        "accuracy_units": "gt_bbox_longest_side",
         "init_accuracy": acc0,
         "final_accuracy": acc1,
         "accuracy_ratio": acc0["accuracy"] / acc1["accuracy"],
         "novel_view_rmse": float(np.mean(rmse)),
         "novel_view_rmse_per_view": rmse,
+        **relight,
         "texture_errors": tex,
         "manifold": bool(topo["is_mesh_two_manifold"]),
         "boundary_edges": int(topo["boundary_edges"]),
@@ -201,12 +251,18 @@ def main(argv=None) -> int:
         "phase_seconds": summary["phase_seconds"],
         "stages": summary["stages"],
         "final_losses": summary["final_losses"],
+        "settings": summary.get("settings"),
+        **material_report(summary, args.out),
+        # Linux: ru_maxrss is in KiB; the peak of this process (optimize runs in it)
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
     }
-    (args.out / "bench.json").write_text(json.dumps(result, indent=1))
     np.save(args.out / "novel_render.npy", np.stack([img_rec, img_gt]))
-    keys = ("init_accuracy", "final_accuracy", "accuracy_ratio", "novel_view_rmse", "texture_errors", "manifold",
-            "self_intersecting_faces", "wall_seconds", "phase_fraction")
-    print(json.dumps({k: result[k] for k in keys}, indent=1))  # noqa: T201 (a command line tool's report)
+    with atomic_path(args.out / "bench.json") as tmp:  # last: its presence means "done"
+        tmp.write_text(json.dumps(result, indent=1))
+    keys = ("init_accuracy", "final_accuracy", "accuracy_ratio", "novel_view_rmse", "relight_rmse",
+            "relight_noise_floor", "texture_errors", "manifold", "self_intersecting_faces", "wall_seconds",
+            "phase_fraction", "peak_rss_mb", "material_model")
+    print(json.dumps({k: result[k] for k in keys if k in result}, indent=1))  # noqa: T201 (a command line tool's report)
     return 0
 
 
