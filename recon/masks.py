@@ -24,6 +24,14 @@ Method (why each step):
    inside the object), larger ones are kept (real through-holes, e.g. a handle); a small
    closing smooths the outline.
 
+No object: a view whose brightest pixels (99.9th percentile of the luminance) carry no light
+(below ``1e-20``: nothing but rounding residue) is an error; so is, for RAW and JPEG/PNG views
+(whose linear scale puts the white level at 1.0, see :mod:`recon.linearize`), one whose
+brightest pixels stay below ``min_signal`` of the white level (default 2^-8, 8 stops below
+clipping): such a photo holds sensor noise, not a flash-lit object (a black object, a flash
+that did not fire), and a mask derived from noise would only mislead the later stages. EXR
+views are scene-referred in unknown units, so only the first test applies to them.
+
 Masks feed the visual hull (:mod:`recon.init_mesh`), where a mask that is too small carves
 away object, so every step errs on the side of a slightly larger mask.
 """
@@ -32,6 +40,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import time
 from dataclasses import asdict, dataclass
@@ -45,6 +54,10 @@ from recon.io.images import ImageError, read_exr, read_mask, write_mask
 log = logging.getLogger(__name__)
 
 LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+NO_LIGHT = 1e-20
+"""Brightest pixels at or below this (any units) mean the image holds no light at all."""
+WHITE_LEVEL_KINDS = ("raw", "ldr")
+"""linear.json kinds whose linear scale puts the white level at 1.0 (``min_signal`` applies)."""
 
 
 class MaskError(ValueError):
@@ -67,6 +80,8 @@ class MaskSettings:
     dilate_px: int = 0  # extra safety margin in pixels (after everything else)
     min_coverage: float = 0.001  # warn when a mask covers less than this fraction of the image
     max_coverage: float = 0.95  # ... or more than this
+    min_signal: float = 2.0**-8  # RAW/JPEG/PNG: the brightest pixels must reach this fraction of white
+
 
     def __post_init__(self):
         if not 0 < self.floor < 1:
@@ -75,6 +90,8 @@ class MaskSettings:
             raise ValueError("background_sigmas, open_radius, close_radius and dilate_px must be >= 0")
         if not 0 <= self.max_hole_fraction <= 1:
             raise ValueError(f"max_hole_fraction must be in [0, 1], got {self.max_hole_fraction}")
+        if not 0 <= self.min_signal < 1:
+            raise ValueError(f"min_signal must be in [0, 1) (a fraction of the white level), got {self.min_signal}")
 
 
 def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
@@ -104,13 +121,19 @@ def _disk(radius_px: int):
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d, d))
 
 
-def derive_mask(rgb_linear: np.ndarray, settings: MaskSettings = MaskSettings()) -> tuple[np.ndarray, dict]:
+def derive_mask(rgb_linear: np.ndarray, settings: MaskSettings = MaskSettings(),
+                white_level: float | None = None) -> tuple[np.ndarray, dict]:
     """Object mask of one flash-lit linear image (method in the module docstring).
 
     Parameters
     ----------
     rgb_linear : (H, W, C) float
         Linear image, C = 1 or 3 (a 4th channel is ignored).
+    white_level : float, optional
+        The linear value of the camera's clipping level (1.0 for RAW and JPEG/PNG views of the
+        linearize stage); when given, brightest pixels below ``settings.min_signal`` of it
+        mean no object is in the image (MaskError). None (EXR: unknown units): only an image
+        without any light is rejected.
 
     Returns
     -------
@@ -130,8 +153,15 @@ def derive_mask(rgb_linear: np.ndarray, settings: MaskSettings = MaskSettings())
     lum = img[:, :, 0] if img.shape[2] == 1 else img[:, :, :3] @ LUMA
     lum = np.maximum(lum, 0.0)
     top = float(np.percentile(lum, 99.9))
-    if top <= 0:
-        raise MaskError("the image is black: no object can be found (is the flash in the photo?)")
+    if not top > NO_LIGHT:
+        raise MaskError(f"the image is black (brightest pixels {top:.3g}): is the flash in the photo?")
+    if white_level is not None and top < settings.min_signal * white_level:
+        stops = math.log2(white_level / top)
+        raise MaskError(
+            f"the brightest pixels (99.9th percentile of the luminance) reach only {100 * top / white_level:.2g}% "
+            f"of the white level (masks.min_signal = {100 * settings.min_signal:.2g}%): the image is sensor "
+            f"noise, a black object or a photo {stops:.0f} stops underexposed; check that the flash fired and "
+            "expose so that the object's brightest parts come near clipping")
     log_l = np.log10(np.maximum(lum, settings.floor * top))
     t_otsu = otsu_threshold(log_l)
     bg = log_l[log_l <= t_otsu]
@@ -182,6 +212,19 @@ def list_linear_stems(linear_dir: str | os.PathLike) -> list[str]:
     return stems
 
 
+def _linear_record(linear_dir: Path) -> dict:
+    """The linearize stage's ``linear.json`` (empty when absent or unreadable: it is optional here)."""
+    path = linear_dir / "linear.json"
+    if not path.is_file():
+        return {}
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        log.warning("%s: not readable (%s); treating the views as EXR (unknown white level)", path, e)
+        return {}
+    return record if isinstance(record, dict) else {}
+
+
 def run_masks(
     linear_dir: str | os.PathLike,
     out_dir: str | os.PathLike,
@@ -205,6 +248,8 @@ def run_masks(
     """
     linear_dir = Path(linear_dir)
     stems = list(stems) if stems is not None else list_linear_stems(linear_dir)
+    record = _linear_record(linear_dir)
+    white = 1.0 if record.get("kind") in WHITE_LEVEL_KINDS else None
     given = Path(given_dir) if given_dir is not None else None
     t0 = time.perf_counter()
     views = {}
@@ -226,9 +271,12 @@ def run_masks(
                 info = {"source": "given", "coverage": float(mask.mean())}
             else:
                 try:
-                    mask, info = derive_mask(img, settings)
+                    mask, info = derive_mask(img, settings, white_level=white)
                 except MaskError as e:
-                    raise MaskError(f"{exr}: {e}; provide masks/{stem}.png in the capture") from e
+                    source = (record.get("images") or {}).get(stem, {}).get("source")
+                    where = f"{source} ({exr})" if source else str(exr)
+                    raise MaskError(f"no object found in {where}: {e} (or provide masks/{stem}.png "
+                                    "in the capture)") from e
                 info["source"] = "derived"
             if not settings.min_coverage <= info["coverage"] <= settings.max_coverage:
                 log.warning(

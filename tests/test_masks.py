@@ -128,3 +128,47 @@ def test_run_masks_black_view_names_the_file(tmp_path):
         rm.run_masks(lin, tmp_path / "masks")
     with pytest.raises(rm.MaskError, match="no linear images"):
         rm.run_masks(tmp_path / "empty", tmp_path / "masks")
+
+
+def test_noise_only_or_no_light_is_no_object(scene):
+    """Regression: a black object (or a flash that did not fire) gave masks of sensor noise
+    or of float rounding residue, and the stages after masks failed with misleading messages."""
+    cam = scene["cameras"].frames[0]
+    img = read_exr(scene["linear"] / f"{cam.stem}.exr")
+    # float rounding residue of a render of a black object: no light at all
+    with pytest.raises(rm.MaskError, match=r"image is black \(brightest pixels 1e-34\)"):
+        rm.derive_mask(np.where(img > 0, 1e-34, 0.0).astype(np.float32))
+    # RAW-like noise (white level 1.0): read noise of 3e-4, no object
+    rng = np.random.default_rng(2)
+    noise = np.maximum(rng.normal(0.0, 3e-4, img.shape), 0.0).astype(np.float32)
+    with pytest.raises(rm.MaskError, match=r"reach only 0\.\d+% of the white level \(masks\.min_signal = 0\.39%\)"):
+        rm.derive_mask(noise, white_level=1.0)
+    with pytest.raises(rm.MaskError, match="white level"):  # in any units
+        rm.derive_mask(noise * 1e3, white_level=1e3)
+    # the object 5 stops underexposed, in that noise, is still found
+    dim = img / np.float32(32.0 * np.percentile(img, 99.9)) + noise
+    gt = read_mask(scene["masks"] / f"{cam.stem}.png")
+    mask, _ = rm.derive_mask(dim, white_level=1.0)
+    assert _iou(mask, gt) > 0.9
+    with pytest.raises(ValueError, match="min_signal"):
+        rm.MaskSettings(min_signal=1.0)
+
+
+def test_run_masks_names_the_photo_without_an_object(scene, tmp_path):
+    lin = tmp_path / "linear"
+    cam = scene["cameras"].frames[0]
+    img = read_exr(scene["linear"] / f"{cam.stem}.exr")
+    write_exr(lin / "a.exr", img / np.float32(img.max()))
+    write_exr(lin / "b.exr", img / np.float32(1e3 * img.max()))  # 10 stops too dark
+    record = {"kind": "raw", "images": {"a": {"source": "images/a.dng"}, "b": {"source": "images/b.dng"}}}
+    (lin / "linear.json").write_text(json.dumps(record))
+    out = tmp_path / "masks"
+    with pytest.raises(rm.MaskError, match=r"no object found in images/b\.dng \(.*b\.exr\): .*white level"
+                                           r".*provide masks/b\.png"):
+        rm.run_masks(lin, out)
+    assert not out.exists()
+    # EXR views (unknown units): the dark view is a valid image
+    record["kind"] = "hdr"
+    (lin / "linear.json").write_text(json.dumps(record))
+    summary = rm.run_masks(lin, out)
+    assert summary["views"]["b"]["coverage"] == pytest.approx(summary["views"]["a"]["coverage"])
