@@ -422,6 +422,12 @@ def run_init_mesh(
                 cams = load_cameras(cameras_json)
             except CameraError as e:
                 raise InitMeshError(f"{e}; rerun the poses stage") from e
+            need = max(2, settings.min_views)
+            if len(cams) < need:
+                raise InitMeshError(
+                    f"{cameras_json}: {len(cams)} view(s), but a visual hull needs at least {need} views from "
+                    f"different directions (init_mesh.min_views = {settings.min_views}); photograph the object "
+                    "from more sides, or give init_mesh.ply in the capture")
             if masks_dir is None:
                 raise InitMeshError("no masks folder given: the visual hull needs masks")
             masks = _read_masks_for(cams, Path(masks_dir))

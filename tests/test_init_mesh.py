@@ -107,6 +107,24 @@ def test_empty_hull_and_missing_masks_are_errors(tmp_path):
     assert not (tmp_path / "init_mesh").exists()
 
 
+def test_too_few_views_is_a_clear_error(tmp_path):
+    """Regression: a one-view capture failed with 'masks for 1 of 1 views; ... needs the masks
+    stage's output', which sent the user to the wrong stage."""
+    cams = _ring(n=3, res=32)
+    (tmp_path / "masks").mkdir()
+    for c in cams:
+        write_mask(tmp_path / "masks" / f"{c.stem}.png", np.ones((32, 32), bool))
+    save_cameras(tmp_path / "one.json", CameraSet(cams.frames[:1]))
+    with pytest.raises(rim.InitMeshError, match=r"one\.json: 1 view\(s\), but a visual hull needs at least 2 views "
+                                                r"from different directions.*give init_mesh\.ply"):
+        rim.run_init_mesh(tmp_path / "one.json", tmp_path / "masks", tmp_path / "init_mesh")
+    save_cameras(tmp_path / "three.json", cams)
+    with pytest.raises(rim.InitMeshError, match=r"3 view\(s\), but a visual hull needs at least 4 .*min_views = 4"):
+        rim.run_init_mesh(tmp_path / "three.json", tmp_path / "masks", tmp_path / "init_mesh",
+                          rim.InitMeshSettings(min_views=4))
+    assert not (tmp_path / "init_mesh").exists()
+
+
 def test_given_mesh_passes_through_or_fails_clearly(tmp_path):
     good = tmp_path / "init_mesh.ply"
     write_ply(good, _sphere(0.4))
