@@ -28,8 +28,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import resource
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -128,6 +130,36 @@ def relight_noise_floor(cap: Path, gt: Mesh, gt_maps: dict, novel: list[Camera],
     return r
 
 
+class LoadSampler:
+    """Samples the 1-minute load average every ``period`` seconds in a daemon thread.
+
+    Other processes on the machine slow a run down; the mean load says by how much (on a
+    machine with n cores, a load above n means the run did not have the cores to itself).
+    """
+
+    def __init__(self, period: float = 5.0):
+        self.samples: list[float] = [os.getloadavg()[0]]
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(period,), daemon=True)
+        self._thread.start()
+
+    def _run(self, period: float) -> None:
+        while not self._stop.wait(period):
+            self.samples.append(os.getloadavg()[0])
+
+    def stop(self) -> dict:
+        self._stop.set()
+        self._thread.join()
+        self.samples.append(os.getloadavg()[0])
+        return {"mean": float(np.mean(self.samples)), "max": float(np.max(self.samples)),
+                "cpu_count": os.cpu_count()}
+
+
+def _cpu_seconds() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def material_report(summary: dict, out: Path) -> dict:
     """``material_model`` / ``material_selection`` of the optimize summary, where it has them."""
     path = out / "optimize" / "summary.json"
@@ -201,9 +233,13 @@ def main(argv=None) -> int:
     cams = load_cameras(cap / "cameras.json")
     images = [cap / c.image for c in cams.frames]
     masks = [cap / "masks" / f"{c.stem}.png" for c in cams.frames]
+    load = LoadSampler()
+    cpu0 = _cpu_seconds()
     t0 = time.perf_counter()
     summary = optimize_capture(images, masks, None, cap / "cameras.json", init_path, args.out / "optimize", settings)
     wall = time.perf_counter() - t0
+    cpu = _cpu_seconds() - cpu0
+    load_avg = load.stop()
 
     final = read_mesh(args.out / "optimize" / "mesh.obj")
     acc0 = chamfer(init, gt)
@@ -247,6 +283,10 @@ def main(argv=None) -> int:
         "boundary_edges": int(topo["boundary_edges"]),
         "self_intersecting_faces": int(self_intersecting_faces(final.v_pos, final.t_pos_idx).sum()),
         "wall_seconds": wall,
+        # CPU time (user + system, all threads) of the optimize stage, and the machine's load
+        # average while it ran: wall time depends on what else runs, CPU time much less
+        "cpu_seconds": cpu,
+        "load_average": load_avg,
         "phase_fraction": summary["phase_fraction"],
         "phase_seconds": summary["phase_seconds"],
         "stages": summary["stages"],

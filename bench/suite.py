@@ -121,22 +121,24 @@ def material_text(r: dict) -> str:
 
 
 def results_table(res: dict, objects: list[str], presets: list[str]) -> str:
-    head = ("| object | preset | wall s | render / loss / backward / step / geometry % | peak MB | accuracy | "
+    head = ("| object | preset | wall s | CPU s | load | render / loss / backward / step / geometry % | peak MB | accuracy | "
             "completeness | novel-view RMSE | relight RMSE | material model (specular, roughness) "
             "| texture MAE diffuse / specular / roughness |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    n_cols = head.count("|") - 1
     for o in objects:
         for p in presets:
             if (o, p) not in res:
                 continue
             r = res[(o, p)]
             if r is None:
-                lines.append(f"| {o} | {p} | failed (see runs/{o}/{p}/log.txt) |" + " |" * 8)
+                lines.append(f"| {o} | {p} | failed (see runs/{o}/{p}/log.txt) |" + " |" * (n_cols - 3))
                 continue
             ph = r["phase_fraction"]
             tex = r["texture_errors"]
             lines.append(
-                f"| {o} | {p} | {r['wall_seconds']:.0f} | "
+                f"| {o} | {p} | {r['wall_seconds']:.0f} | {_fmt(r.get('cpu_seconds'), '.0f')} | "
+                f"{_fmt((r.get('load_average') or {}).get('mean'), '.1f')} | "
                 f"{' / '.join(f'{100 * ph[k]:.0f}' for k in ('render', 'loss', 'backward', 'step', 'geometry'))} | "
                 f"{_fmt(r.get('peak_rss_mb'), '.0f')} | {r['final_accuracy']['accuracy']:.5f} | "
                 f"{r['final_accuracy']['completeness']:.5f} | {r['novel_view_rmse']:.4f} | "
@@ -288,7 +290,9 @@ settings at their defaults). The initial mesh of every run is the visual hull of
 {results_table(res, objects, presets)}
 
 Columns:
-- **wall s**: the optimize stage (`optimize_capture`), not the metrics; **render / loss /
+- **wall s**: the optimize stage (`optimize_capture`), not the metrics; **CPU s**: its CPU time
+  (user + system, all threads); **load**: the mean 1-minute load average of the machine while
+  it ran (above the core count = the run shared the cores with other jobs); **render / loss /
   backward / step / geometry %**: shares of the optimization loop's time (`phase_fraction`;
   geometry = remeshing, UV atlas, surface checks; the paper reports 55-70 % for geometry).
 - **peak MB**: peak resident memory of the benchmark process (`ru_maxrss`, optimize + metrics).
