@@ -334,6 +334,25 @@ def mitsuba_mesh(mesh: Mesh, name: str = "mesh", bsdf=None):
 
 
 # ---- The forward reference ----
+def clip_range(camera: Camera, points: np.ndarray) -> dict:
+    """``near_clip`` and ``far_clip`` of a Mitsuba sensor for ``camera`` that keep ``points``.
+
+    Mitsuba's perspective sensor clips at fixed distances (near 1e-3 in
+    :func:`recon.io.cameras.mitsuba_sensor_dict`, far 1e4 by default), which blacks out a scene
+    smaller than about 1e-3 or farther than 1e4 units: the planes are set from the depths of
+    ``points (N, 3)`` (the scene's vertices) instead, with a factor 2 of margin (the range
+    stays valid while vertices move a little).
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    z = p @ np.asarray(camera.world_to_camera, dtype=np.float64)[2, :3] + camera.world_to_camera[2, 3]
+    z_max = float(z.max()) if len(z) else 0.0
+    if not (np.isfinite(z_max) and z_max > 0):  # nothing in front of the camera: keep the defaults
+        return {}
+    ahead = z[z > 1e-6 * z_max]
+    near = 0.5 * float(ahead.min()) if (z > 1e-6 * z_max).all() else 1e-6 * z_max
+    return {"near_clip": near, "far_clip": 2.0 * z_max}
+
+
 def scene_dict(mesh: Mesh, textures: Mapping[str, object], camera: Camera,
                light_intensity: float, spp: int, r_min: float = R_MIN) -> dict:
     """The Mitsuba scene of DESIGN section 3 for one view (the plugin must be registered)."""
@@ -348,7 +367,7 @@ def scene_dict(mesh: Mesh, textures: Mapping[str, object], camera: Camera,
         "type": "scene",
         # A point light needs emitter sampling only; the pixel filter is a box (DESIGN 3).
         "integrator": {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0},
-        "sensor": mitsuba_sensor_dict(camera, spp=spp, rfilter="box"),
+        "sensor": {**mitsuba_sensor_dict(camera, spp=spp, rfilter="box"), **clip_range(camera, mesh.v_pos)},
         "light": {"type": "point", "position": center.tolist(),
                   "intensity": {"type": "rgb", "value": [float(light_intensity)] * 3}},
         "object": mitsuba_mesh(mesh, "object", bsdf=bsdf),

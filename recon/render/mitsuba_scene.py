@@ -22,6 +22,7 @@ from typing import Sequence
 import numpy as np
 
 from recon.io.cameras import Camera, mitsuba_sensor_dict
+from recon.render.mitsuba_bsdf import clip_range
 
 __all__ = ["MitsubaScene", "render_projective"]
 
@@ -112,6 +113,7 @@ class MitsubaScene:
             self._build(shapes)
         p = self._params
         n_flat = r._vertex_normals(v_flat, nv)
+        v_np = dr.detach(v_flat).numpy().reshape(-1, 3)  # for the sensors' clip planes
         pos = dr.gather(mi.Point3f, v_flat, self._split_pos)
         nrm = dr.gather(mi.Vector3f, n_flat, self._split_pos)
         p["object.vertex_positions"] = dr.ravel(pos)
@@ -127,7 +129,8 @@ class MitsubaScene:
         for i, cam in enumerate(cameras):
             p["light.position"] = mi.Point3f(*[float(x) for x in cam.center])
             p.update()
-            sensor = mi.load_dict(mitsuba_sensor_dict(cam, spp=spp, sample_border=True))
+            sensor = mi.load_dict({**mitsuba_sensor_dict(cam, spp=spp, sample_border=True),
+                                   **clip_range(cam, v_np)})
             img = mi.render(self._scene, p, sensor=sensor, spp=spp,
                             seed=int(seed) * 1009 + i, seed_grad=int(seed) * 1009 + i + 7)
             images.append(img[:, :, :3])

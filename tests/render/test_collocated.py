@@ -385,6 +385,23 @@ def test_scale_invariance(mi, dr):
         assert abs(np.abs(g * s).sum() - scale) < 2e-2 * scale
 
 
+@pytest.mark.parametrize("s", [1e-5, 1e5])
+def test_projective_mode_at_any_scene_scale(mi, dr, s):
+    """Regression: the Mitsuba sensors of boundary="projective" clipped at fixed distances
+    (near 1e-3, far 1e4), so a scene of 1e-5 or 1e5 units rendered black."""
+    v, f, t, ft, cam, maps = _extreme_case("roughness_one")
+    r = CollocatedRenderer(f, t, ft, RenderSettings(spp=4, boundary="projective"))
+
+    def run(scale):
+        c = Camera(cam.image, cam.width, cam.height, cam.K, cam.world_to_camera.copy())
+        c.world_to_camera[:3, 3] *= scale
+        return r.render((v * scale).astype(np.float32), *maps, [c], LIGHT * scale * scale, 2)[0].numpy()
+
+    ref = run(1.0)
+    assert ref.max() > 0
+    np.testing.assert_allclose(run(s), ref, rtol=1e-3, atol=1e-4 * ref.max())
+
+
 # ---------------------------------------------------------------------- torch bridge
 def test_render_torch_matches_drjit_gradients(mi, dr, scene, weights):
     import torch

@@ -440,3 +440,32 @@ def test_environment_lighting_matches_directional_albedo(mi, mb, strategy):
     albedo = np.sum(f * (d[:, 2] * dw)[:, None], axis=0)
     # measured: within 0.1 % for both strategies at 8 x 8 x 4096 samples
     np.testing.assert_allclose(img.mean(axis=(0, 1)), albedo, rtol=5e-3)
+
+
+@pytest.mark.parametrize("scale", [1e-5, 1e5])
+def test_render_reference_at_any_scene_scale(mb, scale):
+    """Regression: the sensor's fixed clip planes (near 1e-3, far 1e4) blacked out scenes
+    below ~1e-3 or beyond ~1e4 units. Scaling the scene by s and the light by s^2 leaves the
+    image unchanged."""
+    mesh = jittered_uv_sphere(n_lon=12, n_lat=6, jitter=0.0)
+    textures = {"diffuse": 0.5, "specular": 0.2, "roughness": 0.3}
+    eye = np.array([0.5, -3.0, 1.0])
+
+    def render(s):
+        cam = Camera("v.exr", 24, 18, intrinsics(24, 18, 40.0), look_at(eye * s, [0.0, 0.0, 0.0]))
+        m = Mesh(mesh.v_pos * s, mesh.t_pos_idx, mesh.v_tex, mesh.t_tex_idx)
+        return mb.render_reference(m, textures, cam, light_intensity=5.0 * s * s, spp=4, seed=2)
+
+    ref = render(1.0)
+    assert (ref.sum(-1) > 0).mean() > 0.2
+    np.testing.assert_allclose(render(scale), ref, rtol=1e-4, atol=1e-6 * ref.max())
+
+
+def test_clip_range_holds_the_points(mb):
+    cam = Camera("v.exr", 8, 8, intrinsics(8, 8, 40.0), look_at([0.0, -5.0, 0.0], [0.0, 0.0, 0.0]))
+    r = mb.clip_range(cam, np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -2.0, 0.0]]))
+    assert r == pytest.approx({"near_clip": 1.5, "far_clip": 12.0})
+    # points behind or at the camera: a near plane just in front of it
+    r = mb.clip_range(cam, np.array([[0.0, -6.0, 0.0], [0.0, 1.0, 0.0]]))
+    assert r == pytest.approx({"near_clip": 6e-6, "far_clip": 12.0})
+    assert mb.clip_range(cam, np.array([[0.0, -6.0, 0.0]])) == {}  # nothing visible: defaults
