@@ -741,6 +741,12 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     timings = {}
     stems = _stems(linear_dir)
     n = len(stems)
+    if n < settings.min_registered:
+        raise PoseError(
+            f"{linear_dir}: {n} view(s), but SfM needs at least {settings.min_registered} overlapping photos "
+            f"(poses.min_registered = {settings.min_registered}); photograph the object from more sides "
+            "(a view every 10-15 degrees), or provide cameras.json in the capture so SfM is skipped"
+        )
     t0 = time.perf_counter()
     work = tmp / "work"
     images = work / "images"

@@ -186,6 +186,22 @@ def test_too_few_registered_views_is_a_clear_error(tmp_path):
     assert not out.exists() and not _leftovers(tmp_path)  # nothing partial
 
 
+def test_fewer_views_than_sfm_needs_is_a_clear_error(tmp_path):
+    """Regression: one view went through feature extraction and mapping and was reported as
+    'only 11 SIFT features (too little texture ...)', hiding that a single photo cannot be posed."""
+    lin = tmp_path / "linear"
+    img = np.random.default_rng(6).random((24, 32, 3)).astype(np.float32)
+    write_exr(lin / "v0.exr", img)
+    out = tmp_path / "poses"
+    with pytest.raises(rp.PoseError, match=r"linear: 1 view\(s\), but SfM needs at least 3 overlapping photos "
+                                           r"\(poses\.min_registered = 3\).*provide cameras\.json"):
+        rp.run_poses(lin, out)
+    write_exr(lin / "v1.exr", img)
+    with pytest.raises(rp.PoseError, match=r"2 view\(s\), but SfM needs at least 4 .*min_registered = 4"):
+        rp.run_poses(lin, out, rp.PoseSettings(min_registered=4))
+    assert not out.exists() and not _leftovers(tmp_path)
+
+
 @pytest.fixture(scope="module")
 def synthetic_sfm(tmp_path_factory):
     capture = synth_capture(tmp_path_factory.getbasetemp())
