@@ -30,6 +30,7 @@ import json
 import logging
 import os
 import resource
+import subprocess
 import sys
 import threading
 import time
@@ -160,6 +161,17 @@ def _cpu_seconds() -> float:
     return r.ru_utime + r.ru_stime
 
 
+def code_version() -> dict:
+    """The commit and the uncommitted changes of the code that ran (the working tree is shared)."""
+    def git(*a):
+        r = subprocess.run(["git", *a], cwd=REPO, capture_output=True, text=True)
+        return r.stdout.rstrip() if r.returncode == 0 else None
+
+    status = git("status", "--porcelain", "--", "recon", "config", "bench")
+    return {"commit": git("rev-parse", "--short", "HEAD"),
+            "uncommitted": status.splitlines() if status else []}
+
+
 def material_report(summary: dict, out: Path) -> dict:
     """``material_model`` / ``material_selection`` of the optimize summary, where it has them."""
     path = out / "optimize" / "summary.json"
@@ -233,6 +245,7 @@ def main(argv=None) -> int:
     cams = load_cameras(cap / "cameras.json")
     images = [cap / c.image for c in cams.frames]
     masks = [cap / "masks" / f"{c.stem}.png" for c in cams.frames]
+    version = code_version()
     load = LoadSampler()
     cpu0 = _cpu_seconds()
     t0 = time.perf_counter()
@@ -267,6 +280,7 @@ def main(argv=None) -> int:
         }
     result = {
         "capture": str(cap),
+        "code_version": version,
         "preset": args.preset,
         "overrides": args.set,
         "init": str(init_path),

@@ -202,7 +202,8 @@ def render_envmap_views(mesh: Mesh, maps: Mapping[str, object], cameras: Sequenc
     bsdf = mi.load_dict(mitsuba_bsdf.bsdf_dict(maps, r_min))
     sensors = []
     for cam in cameras:
-        sd = mitsuba_sensor_dict(cam, spp=int(spp))
+        # clip planes from the mesh's depths: the fixed defaults black out tiny or far scenes
+        sd = {**mitsuba_sensor_dict(cam, spp=int(spp)), **mitsuba_bsdf.clip_range(cam, mesh.v_pos)}
         sd["film"]["pixel_format"] = "rgba"
         sensors.append(sd)
     scene = mi.load_dict({

@@ -152,6 +152,18 @@ def test_texture_maps_are_used(sphere):
     assert lum[: H // 2 - 2].sum() > 5 * lum[H // 2 + 2:].sum()  # image rows: up is +z
 
 
+@pytest.mark.parametrize("scale", [1e-4, 1e4])
+def test_scale_invariance(sphere, scale):
+    """Radiance does not depend on the scene's units: the same view at 1e-4 and 1e4 units."""
+    env = em.envmap_image(32, 16)
+    eye = np.array([1.0, -3.5, 1.0])
+    ref = em.render_envmap(sphere, GLOSSY, _cam(eye), env, spp=16)
+    small = Mesh(sphere.v_pos * scale, sphere.t_pos_idx, sphere.v_tex, sphere.t_tex_idx)
+    out = em.render_envmap(small, GLOSSY, _cam(eye * scale), env, spp=16)
+    np.testing.assert_allclose(out[:, :, 3].sum(), ref[:, :, 3].sum(), rtol=0.01)
+    np.testing.assert_allclose(out[:, :, :3].mean(), ref[:, :, :3].mean(), rtol=0.03)
+
+
 # ---- the metric ----
 def test_relight_rmse_self_is_noise_and_decreases_with_spp(sphere):
     env = em.envmap_image(64, 32)
