@@ -117,7 +117,8 @@ def material_text(r: dict) -> str:
     spec = m.get("specular", "?")
     if spec != "none":
         spec += "/" + m.get("specular_color", "?")
-    return f"{spec}, {m.get('roughness', '?')}"
+    selected = (r.get("settings") or {}).get("select_material")
+    return f"{'' if selected else 'fixed: '}{spec}, {m.get('roughness', '?')}"
 
 
 def results_table(res: dict, objects: list[str], presets: list[str]) -> str:
@@ -170,9 +171,10 @@ def pareto_check(res: dict, objects: list[str], presets: list[str]) -> str:
         rs = [(p, res.get((o, p))) for p in presets if res.get((o, p))]
         if len(rs) < 2:
             continue
-        rs.sort(key=lambda pr: pr[1]["wall_seconds"])
-        order = " < ".join(f"{p} ({r['wall_seconds']:.0f} s)" for p, r in rs)
-        line = [f"- **{o}**: wall time {order}."]
+        walls = [r["wall_seconds"] for _, r in rs]
+        order = " -> ".join(f"{p} ({w:.0f} s)" for (p, _), w in zip(rs, walls, strict=True))
+        slower = all(b > a for a, b in zip(walls, walls[1:], strict=False))
+        line = [f"- **{o}**: {order}" + ("." if slower else " (NOT slower in this order: the load varied).")]
         for key, name in (("accuracy", "accuracy"), ("completeness", "completeness"),
                           ("relight_rmse", "relight RMSE"), ("novel_view_rmse", "novel-view RMSE")):
             vals = [(r["final_accuracy"][key] if key in ("accuracy", "completeness") else r.get(key))
@@ -321,7 +323,8 @@ Columns:
 
 ## Pareto check (automatic)
 
-Presets in order of wall time; each metric should fall with every slower preset.
+Presets in the order given (meant from fastest to slowest) with their wall times; each metric
+should fall with every slower preset.
 
 {pareto_check(res, objects, presets)}
 
