@@ -219,11 +219,12 @@ def pareto_plot(res: dict, objects: list[str], presets: list[str], path: Path) -
                 ylabel="accuracy (mean distance, unit bbox)", title="geometry")
     axes[1].set(xscale="log", yscale="log", xlabel="wall time of the optimize stage (s)",
                 ylabel="relighting RMSE (sRGB)", title="relighting (dotted: noise floor)")
-    from matplotlib.ticker import FormatStrFormatter
+    from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
     for ax in axes:
+        ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
         ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
-        ax.xaxis.set_minor_formatter(FormatStrFormatter("%g"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
