@@ -167,9 +167,16 @@ def code_version() -> dict:
         r = subprocess.run(["git", *a], cwd=REPO, capture_output=True, text=True)
         return r.stdout.rstrip() if r.returncode == 0 else None
 
+    import hashlib
+
     status = git("status", "--porcelain", "--", "recon", "config", "bench")
+    # a fingerprint of the uncommitted state: equal for runs of the same working tree
+    h = hashlib.sha1((git("diff", "HEAD", "--", "recon", "config") or "").encode())
+    for f in sorted((git("ls-files", "--others", "--exclude-standard", "--", "recon", "config") or "").split()):
+        h.update(f.encode() + (REPO / f).read_bytes())
     return {"commit": git("rev-parse", "--short", "HEAD"),
-            "uncommitted": status.splitlines() if status else []}
+            "uncommitted": status.splitlines() if status else [],
+            "uncommitted_sha1": h.hexdigest()[:12]}
 
 
 def material_report(summary: dict, out: Path) -> dict:

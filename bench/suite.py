@@ -268,6 +268,7 @@ def write_report(out: Path, docs: Path, objects: list[str], presets: list[str], 
     date = dates[-1].strftime("%Y-%m-%d") if dates else "—"
     total = meta.get("total_seconds")
     versions = sorted({(r.get("code_version") or {}).get("commit") or "?" for r in done})
+    trees = sorted({(r.get("code_version") or {}).get("uncommitted_sha1") or "?" for r in done})
     dirty = sorted({f for r in done for f in (r.get("code_version") or {}).get("uncommitted", [])
                     if f[3:].startswith(("recon/", "config/"))})
     text = f"""# Benchmarks: speed against accuracy of the presets
@@ -281,7 +282,8 @@ the end is hand-written and kept.
 - Machine: {meta.get("machine", machine_text())}; other jobs shared the machine during the
   runs, so wall times are upper bounds of an idle machine's.
 - Code: commit {", ".join(versions) or "—"}{"; uncommitted changes in the working tree when runs started: "
-  + ", ".join(f"`{f[3:]}`" for f in dirty) if dirty else " (clean recon/ and config/)"}.
+  + ", ".join(f"`{f[3:]}`" for f in dirty) + f" (fingerprints of the uncommitted state: {', '.join(trees)})"
+  if dirty else " (clean recon/ and config/)"}.
 - Date of the newest run: {date}. Total suite time (captures + runs, summed over invocations):
   {f"{total / 60:.1f} min" if total else "—"}.
 
