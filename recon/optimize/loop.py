@@ -36,6 +36,7 @@ from recon.optimize import checkpoint as ckpt
 from recon.optimize import regularizers as reg
 from recon.optimize.guard import SurfaceGuard
 from recon.optimize.largesteps import AdamUniform, LargeSteps
+from recon.optimize.material import compare, heldout_error, model_from_settings, select_material
 from recon.optimize.params import TexturePyramid, albedo_param, constant_map, roughness_param
 from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, topology_report, unwrap
 from recon.optimize.settings import OptimizeSettings, StageSettings
@@ -43,7 +44,7 @@ from recon.optimize.views import Views, ViewSet, render_loss
 
 log = logging.getLogger(__name__)
 
-PHASES = ("render", "loss", "backward", "step", "geometry", "setup")
+PHASES = ("render", "loss", "backward", "step", "geometry", "setup", "material")
 MAP_NAMES = ("diffuse", "specular", "roughness")
 
 
@@ -357,6 +358,7 @@ def optimize_capture(
     cams = load_cameras(cameras_json)
     stages = settings.effective_stages()
     views = Views(images, masks, saturation_masks, cams, max(settings.stage_image_size(s) for s in stages))
+    views, heldout, holdout_info = split_holdout(views, settings)
     init = read_mesh(init_mesh_obj)
     lo, hi = init.bbox()
     bbox_scale = float(np.max(hi - lo))
@@ -391,7 +393,8 @@ def optimize_capture(
     executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surface-guard")
     try:
         st = _run_stages(stages, start_stage, start_it, state, init, settings, views, bbox_scale, weights,
-                         tone_scale, light, timer, records, stage_infos, ckpt_dir, fp, executor, bar, callback)
+                         tone_scale, light, timer, records, stage_infos, ckpt_dir, fp, executor, bar, callback,
+                         heldout)
     finally:
         executor.shutdown(wait=True)
     if bar is not None:
@@ -401,12 +404,29 @@ def optimize_capture(
     with torch.no_grad():
         final_maps = {k: v.numpy().astype(np.float32) for k, v in _map_values(settings, st.maps).items()}
     final = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
+    model = model_from_settings(settings.specular_channels)
+    selection = None
+    if settings.select_material and heldout is not None:
+        t0 = time.perf_counter()
+        size = int(settings.select_image_size)
+        log.info("material model selection on %d held-out views", len(heldout))
+        fit, selection = select_material(
+            final, final_maps, st.covered, views.at(size), heldout.at(size), light, tone_scale,
+            settings.selection_settings(), spp=int(settings.select_spp), seed=int(settings.seed),
+            progress=lambda m, f: log.info("material: fitted %s: held-out error %.5f", m.label(), f.heldout))
+        final_maps, model = fit.maps, fit.model
+        timer.add("material", time.perf_counter() - t0)
+        log.info("material model: %s", model.label())
     topo = topology_report(final.v_pos, final.t_pos_idx)
     from recon.optimize.guard import self_intersecting_faces
 
     n_si = int(self_intersecting_faces(final.v_pos, final.t_pos_idx).sum())
     wall = time.perf_counter() - t_start
     summary = _summary(settings, stage_infos, records, timer, final, topo, n_si, wall, bbox_scale)
+    summary["material_model"] = model.to_dict()
+    summary["material_model_label"] = model.label()
+    summary["material_selection"] = selection
+    summary["holdout"] = holdout_info
     _save(ckpt_dir, fp, st, int(stages[-1].iterations), records, stage_infos, timer, done=True)
     out_dir.mkdir(parents=True, exist_ok=True)
     for k in MAP_NAMES:
@@ -422,7 +442,7 @@ def optimize_capture(
 
 
 def _run_stages(stages, start_stage, start_it, state, init, settings, views, bbox_scale, weights, tone_scale,
-                light, timer, records, stage_infos, ckpt_dir, fp, executor, bar, callback) -> _Stage:
+                light, timer, records, stage_infos, ckpt_dir, fp, executor, bar, callback, heldout=None) -> _Stage:
     """The coarse-to-fine loop; returns the last stage (its accepted mesh and maps)."""
     st: _Stage | None = None
     prev_mesh, prev_maps = None, None
@@ -470,7 +490,63 @@ def _run_stages(stages, start_stage, start_it, state, init, settings, views, bbo
         prev_mesh = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
         with torch.no_grad():
             prev_maps = {k: v.numpy().astype(np.float32) for k, v in _map_values(settings, st.maps).items()}
+        if settings.stop_on_plateau and heldout is not None:
+            t0 = time.perf_counter()
+            stop = _plateau(si, prev_mesh, prev_maps, settings, heldout, light, tone_scale, stage_infos)
+            timer.add("material", time.perf_counter() - t0)
+            if stop and si + 1 < len(stages):
+                if bar is not None:
+                    bar.total = bar.n
+                    bar.refresh()
+                log.info("stage %d: held-out error did not improve on stage %d's; skipping the remaining %d "
+                         "stage(s) (stop_on_plateau)", si, si - 1, len(stages) - si - 1)
+                _save(ckpt_dir, fp, st, int(stage.iterations), records, stage_infos, timer, done=False)
+                break
     return st
+
+
+def _plateau(si, mesh, maps, settings, heldout, light, tone_scale, stage_infos) -> bool:
+    """Held-out error after stage ``si`` (kept in its stage info, so a resumed run decides the
+    same); True when it is not lower than the previous stage's by more than its noise."""
+    info = stage_infos[si]
+    if "heldout_tiles" not in info:
+        s = settings.selection_settings()
+        tiles = heldout_error(mesh, maps, heldout.at(int(settings.select_image_size)), light, tone_scale, s,
+                              spp=int(settings.select_spp), seed=int(settings.seed))
+        info["heldout_tiles"] = [float(x) for x in tiles]
+        info["heldout_error"] = float(np.nanmean(tiles))
+        prev = stage_infos[si - 1] if si > 0 else None
+        if prev is not None and "heldout_tiles" in prev:
+            cmp = compare(np.asarray(info["heldout_tiles"]), np.asarray(prev["heldout_tiles"]), s)
+            info["heldout_vs_previous"] = cmp
+            info["plateau_stop"] = not cmp["accepted"]
+        else:
+            info["plateau_stop"] = False
+        log.info("stage %d: held-out error %.5f%s", si, info["heldout_error"],
+                 " (no clear gain over the previous stage)" if info["plateau_stop"] else "")
+    return bool(info["plateau_stop"])
+
+
+def split_holdout(views: Views, settings: OptimizeSettings):
+    """(training views, held-out views or None, info dict) for ``settings.holds_out``.
+
+    Every ``holdout_every``-th view (starting at the middle of the first block) is held out,
+    at least 2; none when fewer than 4 views would remain to optimize on.
+    """
+    n = len(views)
+    if not settings.holds_out:
+        return views, None, None
+    k = int(settings.holdout_every)
+    held = list(range(k // 2, n, k))
+    if len(held) < 2 and n >= 2:
+        held = sorted({n // 4, (3 * n) // 4})
+    train = [i for i in range(n) if i not in set(held)]
+    if len(held) < 2 or len(train) < 4:
+        log.warning("only %d views: none held out, so no material selection or plateau test "
+                    "(need at least 6)", n)
+        return views, None, {"held_out": [], "reason": f"only {n} views (need at least 6)"}
+    return views.subset(train), views.subset(held), {"held_out": [views.stems[i] for i in held],
+                                                     "train_views": len(train)}
 
 
 def optimize_from_dirs(

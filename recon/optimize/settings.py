@@ -101,6 +101,17 @@ class OptimizeSettings:
 
     Robust surface evolution: ``guard`` (reject self-intersections by halving the displacement
     of the offending vertices), ``guard_max_halvings``.
+
+    Model only what the scene requires (:mod:`recon.optimize.material`): with ``select_material``
+    or ``stop_on_plateau`` every ``holdout_every``-th view is held out of the optimization
+    (at least 2 views, and only when at least 4 remain for it). ``select_material``: after the
+    last stage, fit material models of increasing complexity on the fixed final mesh and keep a
+    richer one only when the held-out error drops by more than ``select_z`` standard errors
+    and ``select_min_gain`` (relative); fits run ``select_iterations`` Adam steps at rate
+    ``select_lr`` on images of longest side ``select_image_size`` with ``select_spp`` samples
+    per pixel. ``stop_on_plateau``: after each coarse-to-fine stage, measure the held-out error
+    and skip the remaining stages when it did not improve on the previous stage's by more than
+    its noise (same test).
     """
 
     resolution: int = 256
@@ -141,6 +152,15 @@ class OptimizeSettings:
     texture_levels: int = 4
     guard: bool = True
     guard_max_halvings: int = 8
+    select_material: bool = False
+    stop_on_plateau: bool = False
+    holdout_every: int = 8
+    select_iterations: int = 150
+    select_lr: float = 0.05
+    select_image_size: int = 128
+    select_spp: int = 4
+    select_z: float = 2.0
+    select_min_gain: float = 0.005
 
     def __post_init__(self):
         stages = tuple(
@@ -161,7 +181,7 @@ class OptimizeSettings:
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
-        for name in ("resolution", "spp", "views_per_iteration", "checkpoint_every"):
+        for name in ("resolution", "spp", "views_per_iteration", "checkpoint_every", "select_image_size", "select_spp"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if int(self.texture_levels) < 1:
@@ -178,6 +198,15 @@ class OptimizeSettings:
         for name in ("lr_geometry", "lr_texture", "largesteps_lambda", "w_render"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if int(self.holdout_every) < 2:
+            raise ValueError(f"holdout_every must be >= 2, got {self.holdout_every}")
+        if int(self.select_iterations) < 0:
+            raise ValueError(f"select_iterations must be >= 0, got {self.select_iterations}")
+        for name in ("select_lr", "select_z"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.select_min_gain < 0:
+            raise ValueError(f"select_min_gain must be >= 0, got {self.select_min_gain}")
         for name in ("w_laplacian", "w_edge", "w_normal", "w_specular", "w_roughness"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -193,6 +222,23 @@ class OptimizeSettings:
 
     def stage_image_size(self, stage: StageSettings) -> int:
         return int(stage.image_size) or int(self.resolution)
+
+    @property
+    def holds_out(self) -> bool:
+        """Whether views are held out of the optimization (for selection or the plateau test)."""
+        return bool(self.select_material or self.stop_on_plateau)
+
+    def selection_settings(self):
+        from recon.optimize.material import SelectionSettings
+
+        return SelectionSettings(
+            iterations=int(self.select_iterations), lr=float(self.select_lr), z=float(self.select_z),
+            min_gain=float(self.select_min_gain), tone_map=self.tone_map, r_min=float(self.r_min),
+            parameterization=self.parameterization, texture_levels=int(self.texture_levels),
+            w_specular=self.w_specular if self.use_material_priors else 0.0,
+            w_roughness=self.w_roughness if self.use_material_priors else 0.0,
+            bilateral_sigma_space=self.bilateral_sigma_space, bilateral_sigma_color=self.bilateral_sigma_color,
+            bilateral_radius=int(self.bilateral_radius))
 
     def weights(self) -> dict[str, float]:
         """Loss weights after the ablation switches."""

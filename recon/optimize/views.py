@@ -138,6 +138,25 @@ class Views:
     def __len__(self) -> int:
         return len(self.cameras)
 
+    def subset(self, indices) -> "Views":
+        """The views ``indices`` (in that order) as a new :class:`Views` (arrays copied; the tone
+        scale ``median_foreground`` recomputed from them)."""
+        idx = [int(i) for i in indices]
+        if not idx:
+            raise ViewsError("a subset of the views must hold at least one view")
+        out = object.__new__(Views)
+        out.stems = [self.stems[i] for i in idx]
+        out.cameras = [self.cameras[i] for i in idx]
+        out.images = self.images[idx].copy()
+        out.masks = self.masks[idx].copy()
+        out.saturated = self.saturated[idx].copy()
+        out.light_intensity = self.light_intensity
+        fg = out.images[(out.masks > 0.5) & ~out.saturated]
+        out.median_foreground = float(np.median(fg)) if fg.size else self.median_foreground
+        if not out.median_foreground > 0:
+            out.median_foreground = self.median_foreground
+        return out
+
     def at(self, size: int) -> ViewSet:
         """The targets with longest side ``size`` (or the stored size when that is smaller)."""
         W, H = self.cameras[0].width, self.cameras[0].height

@@ -1,0 +1,511 @@
+"""Model only what the scene requires: choose the material model on held-out views.
+
+After the coarse-to-fine shape optimization the geometry is fixed, so every photo becomes a
+fixed set of surface samples (a G-buffer: per sample its pixel, UV, ``mu = n . w`` and ``1/d^2``,
+traced once with open3d). Shading them in closed form (DESIGN section 3, collocated) is cheap
+and exact for this image formation, so several material models can be fitted to the training
+views and compared on views the optimization never saw.
+
+The models, in increasing complexity (the ``material_model`` object of ``summary.json`` and
+``report/metrics.json``)::
+
+    {"specular": "none" | "uniform" | "textured",
+     "specular_color": "mono" | "rgb",
+     "roughness": "uniform" | "textured"}
+
+Greedy forward selection: start with diffuse only and try, in order, a uniform specular lobe,
+a spatially varying specular albedo, an RGB specular albedo, a spatially varying roughness;
+each candidate is fitted (Adam on the same parameterizations and priors as the main loop,
+warm-started from the main loop's maps projected into the candidate's form) and kept only
+when its held-out error is lower than the current model's by more than the noise of that
+difference: ``gain > z * SE`` and ``gain > min_gain * error``, with the held-out images cut into
+tiles, the paired per-tile differences giving the gain (a trimmed mean, robust to the few tiles
+where a fit extrapolates badly) and its standard error ``SE`` (Yuen). Diffuse albedo is
+always a texture.
+
+The held-out error is the rendering loss of the main loop (eq. 6: mean |Phi(render) -
+Phi(target)| over unclipped pixels, Phi the same tone map) on the held-out views.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from recon.io.cameras import Camera
+from recon.io.mesh import Mesh
+from recon.optimize import regularizers as reg
+from recon.optimize.params import TexturePyramid, albedo_param, roughness_param
+from recon.optimize.views import ViewSet, tone_map
+
+log = logging.getLogger(__name__)
+
+SPECULAR_KINDS = ("none", "uniform", "textured")
+SPECULAR_COLORS = ("mono", "rgb")
+ROUGHNESS_KINDS = ("uniform", "textured")
+
+
+@dataclass(frozen=True)
+class MaterialModel:
+    """Which parts of the SVBRDF vary over the surface (see the module docstring)."""
+
+    specular: str = "textured"
+    specular_color: str = "mono"
+    roughness: str = "textured"
+
+    def __post_init__(self):
+        for name, allowed in (("specular", SPECULAR_KINDS), ("specular_color", SPECULAR_COLORS),
+                              ("roughness", ROUGHNESS_KINDS)):
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"material model: {name} must be one of {allowed}, got {getattr(self, name)!r}")
+
+    @property
+    def specular_channels(self) -> int:
+        return 3 if self.specular_color == "rgb" else 1
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def label(self) -> str:
+        if self.specular == "none":
+            return "diffuse only"
+        parts = [f"{self.specular} {'RGB ' if self.specular_color == 'rgb' else ''}specular",
+                 f"{self.roughness} roughness"]
+        return ", ".join(parts)
+
+
+DIFFUSE_ONLY = MaterialModel("none", "mono", "uniform")
+
+
+def model_from_settings(specular_channels: int) -> MaterialModel:
+    """The model of the main loop: every map a texture."""
+    return MaterialModel("textured", "rgb" if int(specular_channels) == 3 else "mono", "textured")
+
+
+STEP_ORDER = ("uniform specular", "spatially varying specular", "RGB specular", "spatially varying roughness")
+
+
+def selection_steps(current: MaterialModel) -> list[tuple[str, MaterialModel]]:
+    """The candidates tried after ``current`` was accepted, as (step name, model)."""
+    return [(name, m) for name, m in _steps(current) if m != current]
+
+
+def _steps(m: MaterialModel):
+    r = dataclasses.replace
+    yield "uniform specular", (r(m, specular="uniform") if m.specular == "none" else m)
+    yield "spatially varying specular", r(m, specular="textured")
+    if m.specular != "none":
+        yield "RGB specular", r(m, specular_color="rgb")
+        yield "spatially varying roughness", r(m, roughness="textured")
+
+
+# ---------------------------------------------------------------------- G-buffer
+@dataclass
+class GBuffer:
+    """Surface samples of a set of views of a fixed mesh.
+
+    pixel : (N,) int64 index into the flattened (views, h, w) images
+    uv : (N, 2) float32 texture coordinates (OBJ convention, v up)
+    mu : (N,) float32 ``max(0, n . w)``, shading normal against the direction to the camera
+    inv_d2 : (N,) float32 ``1 / |y - o|^2``
+    spp : samples per pixel (misses contribute zero)
+    shape : (views, h, w)
+    """
+
+    pixel: torch.Tensor
+    uv: torch.Tensor
+    mu: torch.Tensor
+    inv_d2: torch.Tensor
+    spp: int
+    shape: tuple
+
+    @property
+    def grid(self) -> torch.Tensor:
+        """(1, 1, N, 2) ``grid_sample`` coordinates of the samples (DESIGN texel convention)."""
+        return torch.stack([2 * self.uv[:, 0] - 1, 1 - 2 * self.uv[:, 1]], -1)[None, None]
+
+
+def build_gbuffer(mesh: Mesh, cameras: list[Camera] | tuple[Camera, ...], spp: int = 4, seed: int = 0) -> GBuffer:
+    """Trace ``spp`` stratified samples per pixel of every camera against ``mesh`` (open3d).
+
+    Shading normals are the area-weighted vertex normals interpolated barycentrically
+    (DESIGN section 3), UVs interpolated barycentrically.
+    """
+    import open3d as o3d
+
+    if mesh.v_tex is None:
+        raise ValueError("build_gbuffer needs a mesh with UVs")
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.v_pos.astype(np.float32)),
+                        o3d.core.Tensor(mesh.t_pos_idx.astype(np.uint32)))
+    vn = mesh.vertex_normals()
+    k = max(int(round(np.sqrt(spp))), 1)
+    spp = k * k
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x6B0F]))
+    W, H = cameras[0].width, cameras[0].height
+    jj, ii = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    pix_all, uv_all, mu_all, d2_all = [], [], [], []
+    for view, cam in enumerate(cameras):
+        if (cam.width, cam.height) != (W, H):
+            raise ValueError("build_gbuffer: all cameras must have the same image size")
+        R = cam.world_to_camera[:3, :3]
+        o = cam.center
+        Kinv = np.linalg.inv(cam.K)
+        for s in range(spp):
+            sx, sy = s % k, s // k
+            jx = (sx + rng.random(jj.shape)) / k
+            jy = (sy + rng.random(jj.shape)) / k
+            pix = np.stack([(jj + jx).ravel(), (ii + jy).ravel(), np.ones(jj.size)], 1)
+            d = (pix @ Kinv.T) @ R  # camera -> world directions (rows)
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            rays = np.concatenate([np.broadcast_to(o, d.shape), d], 1).astype(np.float32)
+            hit = scene.cast_rays(o3d.core.Tensor(rays))
+            t = hit["t_hit"].numpy()
+            ok = np.isfinite(t)
+            if not ok.any():
+                continue
+            prim = hit["primitive_ids"].numpy()[ok].astype(np.int64)
+            bu, bv = hit["primitive_uvs"].numpy()[ok].T.astype(np.float64)
+            b = np.stack([1 - bu - bv, bu, bv], 1)
+            f = mesh.t_pos_idx[prim]
+            n = np.einsum("nk,nkd->nd", b, vn[f])
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
+            uv = np.einsum("nk,nkd->nd", b, mesh.v_tex[mesh.t_tex_idx[prim]])
+            mu = np.maximum(-(n * d[ok]).sum(1), 0.0)
+            tt = t[ok].astype(np.float64)
+            pix_all.append(view * H * W + np.flatnonzero(ok))
+            uv_all.append(uv.astype(np.float32))
+            mu_all.append(mu.astype(np.float32))
+            d2_all.append((1.0 / np.maximum(tt * tt, 1e-30)).astype(np.float32))
+    cat = (lambda xs, dt, shp: torch.from_numpy(np.concatenate(xs).astype(dt)) if xs
+           else torch.zeros(shp, dtype=torch.float32 if dt != np.int64 else torch.int64))
+    return GBuffer(cat(pix_all, np.int64, (0,)), cat(uv_all, np.float32, (0, 2)), cat(mu_all, np.float32, (0,)),
+                   cat(d2_all, np.float32, (0,)), spp, (len(cameras), H, W))
+
+
+def _lookup(tex: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """Bilinear lookup, clamped to the edge texels: (T, T, C) map at (1, 1, N, 2) -> (N, C)."""
+    if tex.shape[0] == 1 and tex.shape[1] == 1:  # uniform
+        return tex.reshape(1, -1).expand(grid.shape[2], -1)
+    out = torch.nn.functional.grid_sample(tex.permute(2, 0, 1)[None], grid, mode="bilinear",
+                                          padding_mode="border", align_corners=False)
+    return out[0, :, 0].T
+
+
+def _radiance(gb: GBuffer, grid: torch.Tensor, diffuse, specular, roughness, light: float, r_min: float):
+    """(N, 3) radiance of the samples (DESIGN section 3, collocated), see :func:`shade`."""
+    f = _lookup(diffuse, grid) * (1.0 / np.pi)
+    if specular is not None:
+        alpha = _lookup(roughness, grid).clamp(min=r_min, max=1.0) ** 2
+        mu = gb.mu[:, None]
+        a2 = alpha * alpha
+        mu2 = mu * mu
+        dd = mu2 * (a2 - 1) + 1
+        g = mu + torch.sqrt(a2 + (1 - a2) * mu2)  # 2 mu / G1(mu)
+        f = f + _lookup(specular, grid) * (a2 / (np.pi * (dd * g) ** 2))
+    return f * (light * gb.mu * gb.inv_d2)[:, None]
+
+
+def shade(gb: GBuffer, diffuse: torch.Tensor, specular: torch.Tensor | None, roughness: torch.Tensor,
+          light: float, r_min: float) -> torch.Tensor:
+    """Images ``(views, h, w, 3)`` of the G-buffer's views (DESIGN section 3, collocated).
+
+    ``diffuse`` (T, T, 3); ``specular`` (T, T, 1|3) or None (no specular lobe); ``roughness``
+    (T, T, 1). A (1, 1, C) map is uniform. Each pixel is the mean of its ``spp`` samples.
+    """
+    rad = _radiance(gb, gb.grid, diffuse, specular, roughness, light, r_min)
+    V, H, W = gb.shape
+    img = torch.zeros((V * H * W, 3), dtype=rad.dtype).index_add(0, gb.pixel, rad) / gb.spp
+    return img.reshape(V, H, W, 3)
+
+
+class _Problem:
+    """A G-buffer and its targets restricted to the pixels that can carry loss (object in the
+    photo or surface in the render); the loss is still the mean over every pixel of every view."""
+
+    def __init__(self, gb: GBuffer, targets: ViewSet, tone: str, scale: float):
+        V, H, W = gb.shape
+        keep = np.zeros(V * H * W, bool)
+        keep[gb.pixel.numpy()] = True
+        keep |= np.asarray(targets.masks).reshape(-1) > 0
+        self.pixels = np.flatnonzero(keep)
+        remap = np.full(V * H * W, -1, np.int64)
+        remap[self.pixels] = np.arange(len(self.pixels))
+        self.gb = gb
+        self.sample_pixel = torch.from_numpy(remap[gb.pixel.numpy()])
+        self.grid = gb.grid
+        self.n_total = V * H * W
+        self.tone, self.scale = tone, scale
+        tgt = targets.images.reshape(-1, 3)[torch.from_numpy(self.pixels)]
+        self.target_phi = tone_map(tgt, tone, scale)
+        self.weight = targets.weights.reshape(-1, 1)[torch.from_numpy(self.pixels)]
+
+    def render(self, diffuse, specular, roughness, light, r_min) -> torch.Tensor:
+        rad = _radiance(self.gb, self.grid, diffuse, specular, roughness, light, r_min)
+        out = torch.zeros((len(self.pixels), 3), dtype=rad.dtype).index_add(0, self.sample_pixel, rad)
+        return out / self.gb.spp
+
+    def pixel_errors(self, rendered: torch.Tensor) -> torch.Tensor:
+        """(P,) loss per kept pixel (mean over channels, 0 on clipped pixels)."""
+        return ((tone_map(rendered, self.tone, self.scale) - self.target_phi).abs() * self.weight).mean(-1)
+
+    def loss(self, rendered: torch.Tensor) -> torch.Tensor:
+        return self.pixel_errors(rendered).sum() / self.n_total
+
+
+# ---------------------------------------------------------------------- fitting
+@dataclass(frozen=True)
+class SelectionSettings:
+    """How candidates are fitted and compared (from OptimizeSettings, see there)."""
+
+    iterations: int = 150
+    lr: float = 0.05
+    z: float = 2.0
+    min_gain: float = 0.005
+    tile: int = 8
+    trim: float = 0.1
+    tone_map: str = "log"
+    r_min: float = 0.02
+    parameterization: str = "sigmoid"
+    texture_levels: int = 4
+    w_specular: float = 0.01
+    w_roughness: float = 0.001
+    bilateral_sigma_space: float = 1.0
+    bilateral_sigma_color: float = 0.1
+    bilateral_radius: int = 2
+
+
+@dataclass
+class Fit:
+    model: MaterialModel
+    maps: dict  # name -> (T, T, C) float32 numpy, full size (uniform maps broadcast)
+    train_loss: float
+    heldout: float = float("nan")
+    tile_errors: np.ndarray | None = None
+    seconds: float = 0.0
+
+
+def _covered_mean(m: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    sel = m[covered] if covered.any() else m.reshape(-1, m.shape[-1])
+    return sel.reshape(-1, m.shape[-1]).mean(0)
+
+
+class _Params:
+    """The raw parameters of one candidate and their values as maps."""
+
+    def __init__(self, model: MaterialModel, init: dict, covered: np.ndarray, s: SelectionSettings):
+        self.model = model
+        self.T = init["diffuse"].shape[0]
+        kind = s.parameterization
+        self.p_alb, self.p_rough = albedo_param(kind), roughness_param(s.r_min, kind)
+        self.diffuse = TexturePyramid(self.p_alb.raw(init["diffuse"]), s.texture_levels)
+        self.specular = self.roughness = None
+        C = model.specular_channels
+        spec = init["specular"]
+        if spec.shape[2] != C:
+            spec = np.repeat(spec.mean(2, keepdims=True), C, axis=2)
+        if model.specular == "uniform":
+            self.specular = TexturePyramid(self.p_alb.raw(_covered_mean(spec, covered)[None, None]), 1)
+        elif model.specular == "textured":
+            self.specular = TexturePyramid(self.p_alb.raw(spec), s.texture_levels)
+        rough = init["roughness"]
+        if model.specular != "none":
+            if model.roughness == "uniform":
+                self.roughness = TexturePyramid(self.p_rough.raw(_covered_mean(rough, covered)[None, None]), 1)
+            else:
+                self.roughness = TexturePyramid(self.p_rough.raw(rough), s.texture_levels)
+
+    def parameters(self):
+        out = self.diffuse.parameters()
+        for p in (self.specular, self.roughness):
+            if p is not None:
+                out += p.parameters()
+        return out
+
+    def values(self):
+        d = self.p_alb.value(self.diffuse.full())
+        sp = self.p_alb.value(self.specular.full()) if self.specular is not None else None
+        ro = self.p_rough.value(self.roughness.full()) if self.roughness is not None else None
+        return d, sp, ro
+
+    def project_(self):
+        self.diffuse.project_(self.p_alb)
+        if self.specular is not None:
+            self.specular.project_(self.p_alb)
+        if self.roughness is not None:
+            self.roughness.project_(self.p_rough)
+
+    @torch.no_grad()
+    def maps(self) -> dict:
+        d, sp, ro = self.values()
+        T = self.T
+        C = self.model.specular_channels
+        spec = np.zeros((T, T, C), np.float32) if sp is None else np.broadcast_to(sp.numpy(), (T, T, C))
+        rough = np.ones((T, T, 1), np.float32) if ro is None else np.broadcast_to(ro.numpy(), (T, T, 1))
+        return {"diffuse": d.numpy().astype(np.float32), "specular": np.ascontiguousarray(spec, np.float32),
+                "roughness": np.ascontiguousarray(rough, np.float32)}
+
+
+def fit_model(model: MaterialModel, gb: GBuffer, targets: ViewSet, init: dict, covered: np.ndarray,
+              light: float, tone_scale: float, s: SelectionSettings, problem: _Problem | None = None) -> Fit:
+    """Fit the maps of ``model`` to the training views (full batch, Adam); return the maps."""
+    t0 = time.perf_counter()
+    prob = problem if problem is not None else _Problem(gb, targets, s.tone_map, tone_scale)
+    P = _Params(model, init, covered, s)
+    opt = torch.optim.Adam(P.parameters(), lr=s.lr)
+    valid = torch.from_numpy(covered)
+    loss = torch.tensor(float("nan"))
+    n = max(int(s.iterations), 0)
+    for it in range(n + 1):
+        d, sp, ro = P.values()
+        loss = prob.loss(prob.render(d, sp, ro, light, s.r_min))
+        if it == n:
+            break
+        total = loss
+        if model.specular == "textured" and s.w_specular:
+            total = total + s.w_specular * reg.specular_bilateral_loss(
+                sp, d, s.bilateral_sigma_space, s.bilateral_sigma_color, s.bilateral_radius, valid)
+        if ro is not None and model.roughness == "textured" and s.w_roughness:
+            total = total + s.w_roughness * reg.roughness_tv_loss(ro, valid)
+        for g in opt.param_groups:
+            g["lr"] = s.lr * 0.1 ** (it / max(n - 1, 1))
+        opt.zero_grad(set_to_none=True)
+        total.backward()
+        opt.step()
+        P.project_()
+    return Fit(model, P.maps(), float(loss.detach()), seconds=time.perf_counter() - t0)
+
+
+def tile_errors(maps: dict, model: MaterialModel, gb: GBuffer, targets: ViewSet, light: float, tone_scale: float,
+                s: SelectionSettings) -> np.ndarray:
+    """Mean loss per image tile (``s.tile`` pixels square) of the views; NaN where a tile has no
+    unclipped pixel of either the object or the render."""
+    prob = _Problem(gb, targets, s.tone_map, tone_scale)
+    with torch.no_grad():
+        spec = None if model.specular == "none" else torch.tensor(np.asarray(maps["specular"], dtype=np.float32))
+        rad = prob.render(torch.tensor(np.asarray(maps["diffuse"], dtype=np.float32)), spec,
+                          torch.tensor(np.asarray(maps["roughness"], dtype=np.float32)), light, s.r_min)
+        pe = prob.pixel_errors(rad).numpy()
+    V, H, W = gb.shape
+    e = np.zeros(V * H * W)
+    e[prob.pixels] = pe
+    e = e.reshape(V, H, W)
+    fg = np.zeros(V * H * W, bool)
+    fg[prob.pixels] = prob.weight[:, 0].numpy() > 0
+    fg = fg.reshape(V, H, W)
+    t = int(s.tile)
+    out = []
+    for v in range(V):
+        for y in range(0, H, t):
+            for x in range(0, W, t):
+                m = fg[v, y:y + t, x:x + t]
+                out.append(e[v, y:y + t, x:x + t][m].mean() if m.any() else np.nan)
+    return np.asarray(out, dtype=np.float64)
+
+
+def compare(richer: np.ndarray, current: np.ndarray, s: SelectionSettings) -> dict:
+    """Paired comparison of per-tile held-out errors: gain = trimmed mean of (current - richer).
+
+    Yuen's trimmed mean: the ``s.trim`` fraction of tiles at each end is dropped (a few tiles
+    where a fit extrapolates badly, in either direction, would otherwise set the noise), the
+    standard error comes from the winsorized variance. Accepted when gain > z * SE and gain >
+    min_gain * (the current model's trimmed-mean error).
+    """
+    ok = np.isfinite(richer) & np.isfinite(current)
+    d = np.sort(current[ok] - richer[ok])
+    n = int(d.size)
+    if n < 3:
+        return {"gain": 0.0, "se": float("inf"), "relative_gain": 0.0, "tiles": n, "accepted": False}
+    g = int(np.floor(float(s.trim) * n))
+    kept = d[g:n - g]
+    gain = float(kept.mean())
+    w = np.clip(d, kept[0], kept[-1])  # winsorized
+    se = float(w.std(ddof=1) / ((1 - 2 * g / n) * np.sqrt(n)))
+    e = np.sort(current[ok])
+    err = float(e[g:n - g].mean())
+    accept = bool(gain > s.z * se and gain > s.min_gain * err)
+    return {"gain": gain, "se": se, "relative_gain": gain / err if err > 0 else 0.0, "tiles": n,
+            "trimmed": 2 * g, "accepted": accept}
+
+
+def select_material(mesh: Mesh, init_maps: dict, covered: np.ndarray, train: ViewSet, heldout: ViewSet,
+                    light: float, tone_scale: float, s: SelectionSettings, spp: int = 4, seed: int = 0,
+                    progress=None) -> tuple[Fit, dict]:
+    """Greedy forward selection of the material model (module docstring).
+
+    Parameters
+    ----------
+    mesh : the final mesh with its UV atlas (fixed).
+    init_maps : the main loop's maps {"diffuse": (T,T,3), "specular": (T,T,1|3), "roughness": (T,T,1)}.
+    covered : (T, T) bool, texels inside the charts.
+    train, heldout : target views (images at the size to compare at).
+    light, tone_scale : I_e and the tone map's scale (as in the main loop).
+
+    Returns
+    -------
+    (the chosen Fit, evidence dict for summary.json / the report)
+    """
+    t0 = time.perf_counter()
+    gb_train = build_gbuffer(mesh, list(train.cameras), spp, seed)
+    gb_held = build_gbuffer(mesh, list(heldout.cameras), spp, seed + 1)
+    t_gbuf = time.perf_counter() - t0
+
+    problem = _Problem(gb_train, train, s.tone_map, tone_scale)
+
+    def evaluate(model: MaterialModel) -> Fit:
+        fit = fit_model(model, gb_train, train, init_maps, covered, light, tone_scale, s, problem)
+        fit.tile_errors = tile_errors(fit.maps, model, gb_held, heldout, light, tone_scale, s)
+        fit.heldout = float(np.nanmean(fit.tile_errors))
+        if progress is not None:
+            progress(model, fit)
+        return fit
+
+    current = evaluate(DIFFUSE_ONLY)
+    rows = [{"step": "diffuse only", "model": DIFFUSE_ONLY.to_dict(), "heldout_error": current.heldout,
+             "train_loss": current.train_loss, "seconds": current.seconds, "accepted": True,
+             "gain": None, "se": None, "relative_gain": None}]
+    tried = {DIFFUSE_ONLY}
+    for name in STEP_ORDER:
+        cands = dict(selection_steps(current.model))
+        cand = cands.get(name)
+        if cand is None or cand in tried:
+            continue
+        tried.add(cand)
+        fit = evaluate(cand)
+        cmp = compare(fit.tile_errors, current.tile_errors, s)
+        rows.append({"step": name, "model": cand.to_dict(), "heldout_error": fit.heldout,
+                     "train_loss": fit.train_loss, "seconds": fit.seconds, **cmp})
+        log.info("material: %-28s held-out %.5f (gain %+.5f, SE %.5f) %s", name, fit.heldout, cmp["gain"], cmp["se"],
+                 "kept" if cmp["accepted"] else "rejected")
+        if cmp["accepted"]:
+            current = fit
+    evidence = {
+        "criterion": f"keep a richer model when its held-out error is lower by > {s.z} x SE of the paired "
+                     f"per-tile difference ({100 * s.trim:.3g} % trimmed mean over {s.tile}-pixel tiles) and by "
+                     f"> {100 * s.min_gain:.3g} %",
+        "metric": f"mean |Phi(render) - Phi(photo)| (Phi = {s.tone_map} tone map) over held-out pixels",
+        "heldout_views": len(heldout),
+        "train_views": len(train),
+        "image_size": [int(train.cameras[0].width), int(train.cameras[0].height)],
+        "spp": gb_train.spp,
+        "iterations": int(s.iterations),
+        "candidates": rows,
+        "chosen": current.model.to_dict(),
+        "chosen_heldout_error": current.heldout,
+        "seconds": time.perf_counter() - t0,
+        "gbuffer_seconds": t_gbuf,
+    }
+    return current, evidence
+
+
+def heldout_error(mesh: Mesh, maps: dict, heldout: ViewSet, light: float, tone_scale: float, s: SelectionSettings,
+                  spp: int = 4, seed: int = 0, model: MaterialModel | None = None) -> np.ndarray:
+    """Per-tile held-out errors of a mesh and its maps (for the coarse-to-fine plateau test)."""
+    gb = build_gbuffer(mesh, list(heldout.cameras), spp, seed)
+    m = model or model_from_settings(maps["specular"].shape[2])
+    return tile_errors(maps, m, gb, heldout, light, tone_scale, s)
