@@ -475,21 +475,12 @@ def test_huge_scale_finishes_finite(runs):
     assert_finished(runs.get("scale_1000", optimize=OPTIMIZE_ONE_STAGE, scale=1e3), validate=False)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "recon/optimize/loop.py: the geometry's Adam has an absolute eps (1e-8) while its gradients "
-    "scale as 1/scale; at 1e3 units eps damps the steps (after 12 iterations the mesh is off by "
-    "0.4% of the bbox, the diffuse map by 0.011); lead to fix: optimize positions in bbox units "
-    "or use eps / bbox_scale"))
 def test_huge_scale_optimized_model_matches_unit_scale(runs):
     ref, run = runs.get("scale_1", optimize=OPTIMIZE_ONE_STAGE), runs.get("scale_1000", optimize=OPTIMIZE_ONE_STAGE, scale=1e3)
     assert_finished(run, validate=False)
     _assert_optimized_match(scale_deviation(run, ref, 1e3))
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "recon/optimize/remesh.py unwrap: xatlas gets positions in scene units (float32, absolute "
-    "area epsilon): at 1e-3 units every face is degenerate and no packing fits ('xatlas could "
-    "not pack the charts into one 32x32 map'); lead to fix: unwrap a unit-bbox copy (as recon/uv.py)"))
 def test_tiny_scale_finishes_finite_and_matches_unit_scale(runs):
     ref, run = runs.get("scale_1", optimize=OPTIMIZE_ONE_STAGE), runs.get("scale_0.001", optimize=OPTIMIZE_ONE_STAGE, scale=1e-3)
     assert_finished(run, validate=False)

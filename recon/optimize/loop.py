@@ -150,10 +150,13 @@ def _build_stage(index, stage_settings, h, mesh, v_init, covered, map_values, se
     # start rates; the stage's lr_scale and decay are set before every step (_iteration)
     lr_g = settings.lr_geometry * bbox_scale
     lr_t = settings.lr_texture
+    # Adam's eps in the units of the gradients, which scale as 1 / bbox_scale: the steps are the
+    # same in any scene units (an absolute 1e-8 damps them for a scene in millimetres)
+    eps_g = 1e-8 / bbox_scale
     if ls is not None and settings.largesteps_uniform_adam:
-        opt_geom = AdamUniform([geom], lr=lr_g, betas=settings.betas)
+        opt_geom = AdamUniform([geom], lr=lr_g, betas=settings.betas, eps=eps_g)
     else:
-        opt_geom = torch.optim.Adam([geom], lr=lr_g, betas=settings.betas)
+        opt_geom = torch.optim.Adam([geom], lr=lr_g, betas=settings.betas, eps=eps_g)
     opt_tex = torch.optim.Adam([t for k in MAP_NAMES for t in maps[k].parameters()], lr=lr_t, betas=settings.betas)
     if opt_state is not None:
         opt_geom.load_state_dict(opt_state["geom"])
@@ -617,7 +620,7 @@ def _summary(settings, stage_infos, records, timer, final, topo, n_si, wall, bbo
         recs = [r for r in records if r["stage"] == info["stage"]]
         keys = sorted({k for r in recs for k in r if k.startswith("loss")})
         stages.append(dict(
-            info,
+            {k: v for k, v in info.items() if k != "heldout_tiles"},
             iterations=len(recs),
             seconds={p: float(sum(r[f"t_{p}"] for r in recs)) for p in loop_phases},
             final_losses={k: _mean_tail(recs, k) for k in keys},

@@ -77,11 +77,17 @@ def unwrap(v_pos: np.ndarray, t_pos_idx: np.ndarray, texture_size: int, padding:
     import xatlas
 
     T = int(texture_size)
-    v32 = np.asarray(v_pos, dtype=np.float32)
+    # xatlas's degeneracy thresholds are absolute (float32): unwrap a copy scaled to a unit
+    # bounding box, so the atlas is the same in any units (a 1e-3 scene would not pack)
+    v64 = np.asarray(v_pos, dtype=np.float64)
+    lo = v64.min(0) if len(v64) else np.zeros(3)
+    ext = float(np.max(v64.max(0) - lo)) if len(v64) else 0.0
+    v_unit = (v64 - lo) / ext if ext > 0 else v64
+    v32 = v_unit.astype(np.float32)
     f32 = np.asarray(t_pos_idx, dtype=np.uint32)
     # texels per unit length so that the charts fill about half the map (one xatlas run at
     # ~4 s per 30k faces is the cost, so aim to fit at the first attempt)
-    p = np.asarray(v_pos, dtype=np.float64)[np.asarray(t_pos_idx)]
+    p = v_unit[np.asarray(t_pos_idx)]
     area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
     tpu = float(np.sqrt(0.5 * T * T / area)) if area > 0 else 0.0
     for _ in range(int(max_attempts)):

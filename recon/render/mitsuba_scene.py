@@ -132,7 +132,7 @@ class MitsubaScene:
             sensor = mi.load_dict({**mitsuba_sensor_dict(cam, spp=spp, sample_border=True),
                                    **clip_range(cam, v_np)})
             img = mi.render(self._scene, p, sensor=sensor, spp=spp,
-                            seed=int(seed) * 1009 + i, seed_grad=int(seed) * 1009 + i + 7)
+                            seed=(int(seed) * 1009 + i) % 2**32, seed_grad=(int(seed) * 1009 + i + 7) % 2**32)
             images.append(img[:, :, :3])
         h, w = int(cameras[0].height), int(cameras[0].width)
         flat = dr.concat([im.array for im in images]) if len(images) > 1 else images[0].array

@@ -62,6 +62,7 @@ class Page:
     capture: str
     preset: str | None
     material_model: object = None
+    material_selection: dict | None = None  # summary.json's evidence of the held-out model choice
     cards: list = field(default_factory=list)  # (label, value string)
     viewer_head: str = ""
     viewer_body: str = ""
@@ -147,6 +148,9 @@ def render_page(p: Page) -> str:
             f'<figure><a href="{src(f)}"><img src="{src(f)}" alt="{html.escape(c)}"></a>'
             f"<figcaption>{html.escape(c)}</figcaption></figure>" for f, c in p.maps) + "</div>")
 
+    if isinstance(p.material_selection, dict) and p.material_selection.get("candidates"):
+        parts.append(_selection_section(p.material_selection))
+
     parts.append("<h2>Optimization and timings</h2>")
     if p.plots:
         parts.append('<div class="plots">' + "".join(
@@ -167,7 +171,34 @@ def render_page(p: Page) -> str:
     return "\n".join(x for x in parts if x)
 
 
+def _selection_section(sel: dict) -> str:
+    """The material models tried on held-out views, their errors and the decision."""
+    rows = []
+    for r in sel["candidates"]:
+        gain, se = r.get("gain"), r.get("se")
+        rows.append((r.get("step", ""), _model_words(r.get("model")),
+                     r.get("heldout_error"), "" if gain is None else gain, "" if se is None else se,
+                     "baseline" if gain is None else ("kept" if r.get("accepted") else "rejected")))
+    head = ("step", "model", "held-out error", "gain", "SE", "decision")
+    return ("<h2>Material model: chosen on held-out views</h2>"
+            f'<p>Chosen: <b>{html.escape(_model_words(sel.get("chosen")))}</b> '
+            f'({sel.get("heldout_views", "?")} held-out views, {sel.get("train_views", "?")} fitted on). '
+            f'{html.escape(str(sel.get("criterion", "")))}; error = {html.escape(str(sel.get("metric", "")))}.</p>'
+            + _table(rows, head))
+
+
+def _model_words(model) -> str:
+    if not isinstance(model, dict):
+        return str(model)
+    if model.get("specular") == "none":
+        return "diffuse only"
+    rgb = "RGB " if model.get("specular_color") == "rgb" else ""
+    return f"{model.get('specular')} {rgb}specular, {model.get('roughness')} roughness"
+
+
 def _material_text(model) -> str:
     if isinstance(model, str):
         return html.escape(model)
+    if isinstance(model, dict) and "specular" in model:
+        return html.escape(_model_words(model))
     return html.escape(json.dumps(model, sort_keys=True))

@@ -228,6 +228,10 @@ def make_report(
     }
     if material is not None:
         metrics["material_model"] = material
+    selection = summary.get("material_selection") if isinstance(summary.get("material_selection"), dict) else None
+    if selection is not None:
+        metrics["material_selection"] = {k: selection.get(k) for k in (
+            "chosen", "criterion", "metric", "heldout_views", "train_views", "candidates", "seconds")}
     opt_stages = summary.get("stages")
     opt_stages = [st for st in opt_stages if isinstance(st, dict)] if isinstance(opt_stages, list) else []
     metrics["optimize"] = {
@@ -242,7 +246,7 @@ def make_report(
     metrics["light_intensity"] = light
     metrics["settings"] = dataclasses.asdict(settings)
 
-    page = page_html.Page(capture=capture, preset=preset, material_model=material)
+    page = page_html.Page(capture=capture, preset=preset, material_model=material, material_selection=selection)
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as tmp:
         # ---- 3D view ----
