@@ -205,7 +205,9 @@ def _radiance(gb: GBuffer, grid: torch.Tensor, diffuse, specular, roughness, lig
         mu = gb.mu[:, None]
         a2 = alpha * alpha
         mu2 = mu * mu
-        dd = mu2 * (a2 - 1) + 1
+        # mu^2 (a2 - 1) + 1 written as (1 - mu)(1 + mu) + mu^2 a2: no cancellation near mu = 1
+        # at r_min (float32: 1 - 1 + 1.6e-7 would lose the peak of D by ~20 %)
+        dd = (1 - mu) * (1 + mu) + mu2 * a2
         g = mu + torch.sqrt(a2 + (1 - a2) * mu2)  # 2 mu / G1(mu)
         f = f + _lookup(specular, grid) * (a2 / (np.pi * (dd * g) ** 2))
     return f * (light * gb.mu * gb.inv_d2)[:, None]
