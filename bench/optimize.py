@@ -253,6 +253,10 @@ def main(argv=None) -> int:
     images = [cap / c.image for c in cams.frames]
     masks = [cap / "masks" / f"{c.stem}.png" for c in cams.frames]
     version = code_version()
+    import torch
+
+    threads = {"torch": torch.get_num_threads(),
+               **{k: os.environ.get(k) for k in ("OMP_WAIT_POLICY", "OMP_NUM_THREADS")}}
     load = LoadSampler()
     cpu0 = _cpu_seconds()
     t0 = time.perf_counter()
@@ -308,6 +312,7 @@ def main(argv=None) -> int:
         # average while it ran: wall time depends on what else runs, CPU time much less
         "cpu_seconds": cpu,
         "load_average": load_avg,
+        "threads": threads,
         "phase_fraction": summary["phase_fraction"],
         "phase_seconds": summary["phase_seconds"],
         "stages": summary["stages"],
