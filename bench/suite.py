@@ -59,7 +59,8 @@ QUICK_BENCH = ["--novel", "3", "--relight-spp", "16"]
 # OpenMP's default (active) waiting makes torch's small parallel ops 20-30x slower when the
 # cores are shared with other jobs (measured here: the bilateral prior on a 512^2 map took
 # 2.4 s per call with 2 spinning threads against 0.12 s with passive waiting, load 4 on 2
-# cores). The runs get OMP_WAIT_POLICY=PASSIVE unless the caller set a policy.
+# cores). `import recon` sets the same default (recon/__init__.py); the runs also get it in
+# their environment, so the policy holds whatever the import order, unless the caller set one.
 RUN_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}
 
 READING_START = "<!-- reading:start (hand-written; bench/suite.py keeps this part) -->"
