@@ -270,7 +270,7 @@ class SelectionSettings:
     z: float = 2.0
     min_gain: float = 0.005
     tile: int = 8
-    trim: float = 0.1
+    trim: float = 0.02
     tone_map: str = "log"
     r_min: float = 0.02
     parameterization: str = "sigmoid"
