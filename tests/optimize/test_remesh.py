@@ -43,9 +43,12 @@ def test_unwrap_and_rasterize(blob):
     assert 0.3 < cov.mean() < 0.95
     np.testing.assert_allclose(bary[cov].sum(1), 1.0, atol=1e-6)
     assert bary[cov].min() > -1e-5
-    # texel points lie on the surface, at the texel center's UV
-    uv = rm.surface_uv(blob, pts[cov])
-    np.testing.assert_allclose(uv, rm.texel_centers_uv(128)[cov], atol=2e-4)
+    # texel points lie on the surface, at the texel center's UV (points on a seam edge, where the
+    # closest face may be the other chart's, are left out)
+    ok = cov & (bary.min(-1) > 1e-4)
+    assert ok.sum() > 0.98 * cov.sum()
+    uv = rm.surface_uv(blob, pts[ok])
+    np.testing.assert_allclose(uv, rm.texel_centers_uv(128)[ok], atol=2e-4)
     # no two charts overlap: every texel center lies in at most one UV triangle
     import open3d as o3d
 
@@ -81,9 +84,12 @@ def test_bilinear_lookup_and_gutters():
 def test_bake_onto_the_same_atlas_is_exact(blob):
     tex = baked_analytic(blob, 128)
     out, cov = rm.bake(blob, {"diffuse": tex}, blob, 128)
-    inside = rm.rasterize_atlas(blob, 128, dilate=0)[0] >= 0  # texel centers inside triangles
+    face0, bary0, _ = rm.rasterize_atlas(blob, 128, dilate=0)
+    inside = face0 >= 0  # texel centers inside triangles
     assert cov[inside].all()
-    np.testing.assert_allclose(out["diffuse"][inside], tex[inside], atol=2e-4)
+    strict = inside & (bary0.min(-1) > 1e-4)  # not on a seam edge (the closest face may be the other chart's)
+    assert strict.sum() > 0.98 * inside.sum()
+    np.testing.assert_allclose(out["diffuse"][strict], tex[strict], atol=2e-4)
     # the rim texels hold the colour of the chart's own surface (a smooth function: close)
     rim = cov & ~inside
     assert np.abs(out["diffuse"][rim] - tex[rim]).mean() < 0.01
