@@ -131,7 +131,7 @@ def material_text(r: dict) -> str:
 
 
 def results_table(res: dict, objects: list[str], presets: list[str]) -> str:
-    head = ("| object | preset | wall s | CPU s | load | render / loss / backward / step / geometry % | peak MB | accuracy | "
+    head = ("| object | preset | wall s | CPU s | load | selection s | render / loss / backward / step / geometry % | peak MB | accuracy | "
             "completeness | novel-view RMSE | relight RMSE | material model (specular, roughness) "
             "| texture MAE diffuse / specular / roughness |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
@@ -149,6 +149,7 @@ def results_table(res: dict, objects: list[str], presets: list[str]) -> str:
             lines.append(
                 f"| {o} | {p} | {r['wall_seconds']:.0f} | {_fmt(r.get('cpu_seconds'), '.0f')} | "
                 f"{_fmt((r.get('load_average') or {}).get('mean'), '.1f')} | "
+                f"{_fmt(r['phase_seconds'].get('material'), '.0f')} | "
                 f"{' / '.join(f'{100 * ph[k]:.0f}' for k in ('render', 'loss', 'backward', 'step', 'geometry'))} | "
                 f"{_fmt(r.get('peak_rss_mb'), '.0f')} | {r['final_accuracy']['accuracy']:.5f} | "
                 f"{r['final_accuracy']['completeness']:.5f} | {r['novel_view_rmse']:.4f} | "
@@ -275,7 +276,10 @@ def write_report(out: Path, docs: Path, objects: list[str], presets: list[str], 
     dates = sorted(dt.datetime.fromtimestamp((out / "runs" / o / p / "bench.json").stat().st_mtime)
                    for (o, p), r in res.items() if r)
     date = dates[-1].strftime("%Y-%m-%d") if dates else "—"
-    total = meta.get("total_seconds")
+    # what the report's runs cost: their processes (optimize + metrics) plus making the captures
+    run_seconds = [json.loads(f.read_text())["seconds"] for (o, p), r in res.items() if r
+                   for f in [out / "runs" / o / p / "suite_run.json"] if f.is_file()]
+    total = (meta.get("capture_seconds", 0.0) + sum(run_seconds)) if run_seconds else None
     omp = ", ".join(sorted({(r.get("threads") or {}).get("OMP_WAIT_POLICY") or "unset" for r in done})) or "—"
     versions = sorted({(r.get("code_version") or {}).get("commit") or "?" for r in done})
     trees = sorted({(r.get("code_version") or {}).get("uncommitted_sha1") or "?" for r in done})
@@ -294,8 +298,8 @@ the end is hand-written and kept.
 - Code: commit {", ".join(versions) or "—"}{"; uncommitted changes in the working tree when runs started: "
   + ", ".join(f"`{f[3:]}`" for f in dirty) + f" (fingerprints of the uncommitted state: {', '.join(trees)})"
   if dirty else " (clean recon/ and config/)"}.
-- Date of the newest run: {date}. Total suite time (captures + runs, summed over invocations):
-  {f"{total / 60:.1f} min" if total else "—"}.
+- Date of the newest run: {date}. Suite time for these results (making the captures + the
+  {len(run_seconds)} benchmark processes, each optimize + metrics): {f"{total / 60:.1f} min" if total else "—"}.
 
 ## Captures
 
@@ -313,7 +317,9 @@ Columns:
 - **wall s**: the optimize stage (`optimize_capture`), not the metrics, run with
   `OMP_WAIT_POLICY={omp}` (see the reading); **CPU s**: its CPU time
   (user + system, all threads); **load**: the mean 1-minute load average of the machine while
-  it ran (above the core count = the run shared the cores with other jobs); **render / loss /
+  it ran (above the core count = the run shared the cores with other jobs); **selection s**:
+  time of the held-out material-model selection and plateau tests (`phase_seconds.material`,
+  inside the wall time, outside the loop shares); **render / loss /
   backward / step / geometry %**: shares of the optimization loop's time (`phase_fraction`;
   geometry = remeshing, UV atlas, surface checks; the paper reports 55-70 % for geometry).
 - **peak MB**: peak resident memory of the benchmark process (`ru_maxrss`, optimize + metrics).
@@ -378,8 +384,11 @@ def main(argv=None) -> int:
     if not args.report_only:
         t_start = time.perf_counter()
         spent = 0.0
+        capture_seconds = float(meta.get("capture_seconds", 0.0))
         for o in args.objects:
-            spent += make_capture(out / "captures" / o, capture_args[o])
+            sec = make_capture(out / "captures" / o, capture_args[o])
+            spent += sec
+            capture_seconds += sec
         jobs = [] if args.captures_only else [(o, pr) for pr in presets for o in args.objects]
         for k, (o, pr) in enumerate(jobs, 1):
             run_dir = out / "runs" / o / pr
@@ -400,6 +409,7 @@ def main(argv=None) -> int:
             "command": shlex.join(["python", "bench/suite.py", *argv_used]),
             "machine": machine_text(),
             "finished": dt.datetime.now().isoformat(timespec="seconds"),
+            "capture_seconds": capture_seconds,
             "invocations": meta.get("invocations", []) + [
                 {"seconds": time.perf_counter() - t_start, "work_seconds": spent}],
         }
