@@ -97,6 +97,7 @@ class PoseSettings:
     min_registered: int = 3
     min_view_points: int = 15  # views posed from fewer 3D points are dropped (unreliable)
     min_registered_fraction: float = 0.5  # fewer than this (largest model / views): error
+    min_silhouette_consistency: float = 0.9  # with masks: see silhouette_consistency (0: off)
     refine: bool = True  # a final robust bundle adjustment
     refine_loss_scale: float = 0.5  # Cauchy loss scale, pixels
     distortion_gain: float = 0.05  # keep lens distortion only if it cuts the error by more (-1: always)
@@ -326,6 +327,7 @@ def _extract_and_match(db: Path, images: Path, n_views: int, settings: PoseSetti
     matching.sift.max_ratio = settings.max_ratio
     verification = pycolmap.TwoViewGeometryOptions(min_num_inliers=settings.min_num_inliers)
     verification.ransac.max_error = verify_max_error(settings, shape)
+    verification.ransac.random_seed = settings.seed  # unseeded, the verified pairs change run to run
     kind = settings.matcher
     if kind == "auto":
         kind = "exhaustive" if n_views <= settings.exhaustive_max_views else "sequential"
@@ -352,26 +354,69 @@ def _intrinsics_ok(rec, shape, f_prior: float | None = None) -> bool:
     return bool(0.2 < ratio < 8.0 and np.all(extra < 0.5) and prior_ok)
 
 
-def _mapper_sequence(settings: PoseSettings, has_prior: bool) -> list[str]:
+def silhouette_consistency(rec, masks: dict[str, np.ndarray], up: int = 1) -> float | None:
+    """Fraction of (sparse point, registered view) pairs whose projection lands inside the
+    view's mask, over projections inside the image; None without masks or points.
+
+    Every point of the object projects inside the object's silhouette in every view, seen or
+    occluded, so a right model scores near 1 whatever its track lengths. A model that is wrong
+    as a whole (a mirrored or folded solution of a symmetric object: all views ~1 px off,
+    rotations 50-140 degrees wrong) still reprojects its points onto their own features but
+    not into the other views' silhouettes: on the demo capture right models scored 0.97-0.98,
+    wrong ones 0.59-0.61. ``up``: the model is on images enlarged by this factor.
+    """
+    if not masks or rec.num_points3D() == 0:
+        return None
+    xyz = np.array([rec.point3D(p).xyz for p in rec.point3D_ids()]).reshape(-1, 3)
+    total = inside = 0
+    for i in rec.reg_image_ids():
+        im = rec.images[i]
+        m = masks.get(Path(im.name).stem)
+        if m is None:
+            continue
+        M = np.asarray(im.cam_from_world().matrix())
+        pc = xyz @ M[:, :3].T + M[:, 3]
+        pc = pc[pc[:, 2] > 1e-9]
+        if not len(pc):
+            continue
+        uv = np.asarray(rec.cameras[im.camera_id].img_from_cam(pc)).reshape(-1, 2) / up
+        ok = np.all(np.isfinite(uv), axis=1)
+        x, y = np.floor(uv[ok, 0]).astype(np.int64), np.floor(uv[ok, 1]).astype(np.int64)
+        keep = (x >= 0) & (x < m.shape[1]) & (y >= 0) & (y < m.shape[0])
+        total += int(keep.sum())
+        inside += int(m[y[keep], x[keep]].sum())
+    return inside / total if total else None
+
+
+def _mapper_sequence(settings: PoseSettings, has_prior: bool, n: int | None = None) -> list[str]:
     """Mapping trials in order. ``auto``: global (rotation averaging suits orbits around an
-    object), incremental, then, with a focal length prior, incremental with the intrinsics held
-    at the prior (stable where free intrinsics drift; the final refinement frees them), then
-    alternating again with new seeds."""
+    object), incremental, incremental with the intrinsics held at the prior (stable where free
+    intrinsics drift; the final refinement frees them, guarded by ``_intrinsics_ok``), then
+    alternating again with new seeds. With a focal length prior (EXIF), the held-intrinsics
+    mapper goes first: on small or weakly textured captures free intrinsics drifted in most
+    trials (the demo: 3 of 4 trials "bogus intrinsics", f 6x the prior), the held ones never."""
+    n = settings.mapping_trials if n is None else n
     if settings.mapper != "auto":
-        return [settings.mapper] * settings.mapping_trials
-    cycle = ["global", "incremental", "incremental_fixed" if has_prior else "global", "incremental"]
-    return [cycle[t % len(cycle)] for t in range(settings.mapping_trials)]
+        return [settings.mapper] * n
+    if has_prior:
+        cycle = ["incremental_fixed", "global", "incremental", "incremental_fixed"]
+    else:
+        cycle = ["global", "incremental", "global", "incremental"]
+    return [cycle[t % len(cycle)] for t in range(n)]
 
 
 def _map(db: Path, images: Path, sparse_root: Path, settings: PoseSettings, n_views: int, shape,
-         f_prior: float | None = None) -> tuple:
+         f_prior: float | None = None, masks: dict | None = None, up: int = 1) -> tuple:
     """Run mapping trials; return (best reconstruction, all models of that trial, trial log,
     trial index, views dropped as weak)."""
     import pycolmap
 
     best = None
     trials = []
-    for trial, kind in enumerate(_mapper_sequence(settings, f_prior is not None)):
+    # up to twice the trials while no model is both plausible and consistent with the masks
+    for trial, kind in enumerate(_mapper_sequence(settings, f_prior is not None, 2 * settings.mapping_trials)):
+        if trial >= settings.mapping_trials and best is not None and best[0][0] and best[0][1]:
+            break
         seed = settings.seed + trial
         pycolmap.set_random_seed(seed)
         out = sparse_root / f"trial{trial}"
@@ -407,15 +452,19 @@ def _map(db: Path, images: Path, sparse_root: Path, settings: PoseSettings, n_vi
         weak = _drop_weak_views(models[0], settings.min_view_points) if models else {}
         n_reg = models[0].num_reg_images() if models else 0
         sane = bool(models) and _intrinsics_ok(models[0], shape, f_prior)
+        sil = silhouette_consistency(models[0], masks or {}, up) if models else None
+        consistent = sil is None or sil >= settings.min_silhouette_consistency
         trials.append({"mapper": kind, "seed": seed, "registered": n_reg, "weak_views_dropped": weak,
                        "models": [m.num_reg_images() for m in models], "intrinsics_ok": sane,
-                       "seconds": time.perf_counter() - t0})
-        log.info("mapping trial %d (%s, seed %d): %d/%d views registered in the largest of %d model(s)%s",
-                 trial, kind, seed, n_reg, n_views, len(models), "" if sane or not models else ", bogus intrinsics")
-        score = (sane, n_reg)
+                       "silhouette_consistency": sil, "seconds": time.perf_counter() - t0})
+        log.info("mapping trial %d (%s, seed %d): %d/%d views registered in the largest of %d model(s)%s%s",
+                 trial, kind, seed, n_reg, n_views, len(models),
+                 "" if sil is None else f", silhouette consistency {sil:.3f}",
+                 "" if sane or not models else ", bogus intrinsics")
+        score = (sane, consistent, n_reg, sil or 0.0)
         if models and (best is None or score > best[0]):
             best = (score, models[0], models, trial, weak)
-        if sane and n_reg >= settings.accept_fraction * n_views:
+        if sane and consistent and n_reg >= settings.accept_fraction * n_views:
             break
     if best is None:
         return None, [], trials, None, {}
@@ -444,7 +493,7 @@ def _drop_weak_views(rec, min_points: int) -> dict[str, int]:
     return weak
 
 
-def _refine(rec, settings: PoseSettings):
+def _refine(rec, settings: PoseSettings, shape=None, f_prior: float | None = None):
     """Final bundle adjustment with a robust (Cauchy) loss; returns (reconstruction, info).
 
     Wrong matches that survived verification (repeated texture, highlights) then pull much
@@ -453,24 +502,39 @@ def _refine(rec, settings: PoseSettings):
     more than ``distortion_gain``: an object in the middle of the frame hardly constrains lens
     distortion, which then trades off against the focal length (seen in tests: f 13% off with
     k = -0.37 on distortion-free images).
+
+    ``shape`` (H, W) given, a candidate whose intrinsics drift to implausible values
+    (``_intrinsics_ok``) is rejected, even with the lower error: on the 192x144 demo a free
+    adjustment once went from f = 264 px to f = 1552 px with k = -58 (error 0.43 -> 0.35 px),
+    which undistorted every view into nonsense and emptied the visual hull. If no free
+    candidate is plausible, the adjustment runs with the intrinsics held as mapped.
     """
     import pycolmap
 
-    def adjust(r, refine_extra: bool):
-        ba = pycolmap.BundleAdjustmentOptions(print_summary=False, refine_extra_params=refine_extra)
+    def adjust(r, refine_extra: bool, refine_focal: bool = True):
+        ba = pycolmap.BundleAdjustmentOptions(print_summary=False, refine_extra_params=refine_extra,
+                                              refine_focal_length=refine_focal)
         ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
         ba.ceres.loss_function_scale = settings.refine_loss_scale
         ba.ceres.solver_options.num_threads = settings.num_threads
         pycolmap.bundle_adjustment(r, ba)
         return float(r.compute_mean_reprojection_error())
 
+    def plausible(r) -> bool:
+        return shape is None or _intrinsics_ok(r, shape, f_prior)
+
     before = float(rec.compute_mean_reprojection_error())
+    info = {"reprojection_error_before_px": before}
+    candidates = []  # (name, reconstruction, error), most general first
     free = pycolmap.Reconstruction(rec)
     e_free = adjust(free, True)
-    info = {"reprojection_error_before_px": before, "reprojection_error_free_px": e_free}
-    chosen, e = free, e_free
+    info["reprojection_error_free_px"] = e_free
     cam = next(iter(rec.cameras.values()))
     extra = list(cam.extra_params_idxs())
+    if plausible(free):
+        candidates.append(("estimated" if extra else "none", free, e_free))
+    else:
+        info["rejected_free"] = np.round(np.asarray(next(iter(free.cameras.values())).params), 4).tolist()
     if extra and settings.distortion_gain >= 0:
         plain = pycolmap.Reconstruction(rec)
         for c in plain.cameras.values():
@@ -479,10 +543,21 @@ def _refine(rec, settings: PoseSettings):
             c.params = p
         e_plain = adjust(plain, False)
         info["reprojection_error_no_distortion_px"] = e_plain
-        if e_plain <= e_free * (1.0 + settings.distortion_gain):
-            chosen, e = plain, e_plain
+        if plausible(plain):
+            if not candidates or e_plain <= candidates[0][2] * (1.0 + settings.distortion_gain):
+                candidates.insert(0, ("none", plain, e_plain))
+        else:
+            info["rejected_no_distortion"] = np.round(np.asarray(next(iter(plain.cameras.values())).params),
+                                                      4).tolist()
+    if not candidates:  # both drifted: keep the mapped intrinsics
+        held = pycolmap.Reconstruction(rec)
+        e_held = adjust(held, False, refine_focal=False)
+        candidates.append(("held as mapped", held, e_held))
+        log.warning("robust refinement: free intrinsics drifted to implausible values %s; kept the mapped "
+                    "camera", info.get("rejected_free"))
+    name, chosen, e = candidates[0]
     cam = next(iter(chosen.cameras.values()))
-    info["distortion"] = "estimated" if chosen is free and extra else "none"
+    info["distortion"] = name
     info["reprojection_error_after_px"] = e
     log.info("robust refinement: mean reprojection error %.3f -> %.3f px (distortion %s); camera %s %s",
              before, e, info["distortion"], cam.model_name, np.round(cam.params, 4).tolist())
@@ -769,7 +844,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
                                       else min(settings.max_num_features, settings.max_num_features_upsampled)))
     matcher = timings.pop("matcher")
     t0 = time.perf_counter()
-    rec, models, trials, trial, weak = _map(db, images, work / "mapping", settings, n, shape_sift, f_sift)
+    rec, models, trials, trial, weak = _map(db, images, work / "mapping", settings, n, shape_sift, f_sift, masks, up)
     timings["map_s"] = time.perf_counter() - t0
 
     registered = set()
@@ -797,7 +872,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     shutil.rmtree(work / "mapping", ignore_errors=True)
     refinement = {}
     if settings.refine:
-        rec, refinement = _refine(rec, settings)
+        rec, refinement = _refine(rec, settings, shape_sift, f_sift)
     if up > 1:
         _rescale_model(rec, shape, up)
     (tmp / "sparse").mkdir()
@@ -862,6 +937,13 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     (tmp / "frame.json").write_text(json.dumps(frame, indent=1))
 
     mre = float(rec.compute_mean_reprojection_error())
+    sil = silhouette_consistency(rec, masks)
+    if sil is not None and sil < settings.min_silhouette_consistency:
+        log.warning("only %.0f%% of the sparse points project inside the other views' masks (a right model: "
+                    "> %.0f%%): the cameras and the masks disagree; either the masks miss parts of the object "
+                    "(check results/<capture>/masks) or SfM found a wrong (e.g. mirrored) solution; more "
+                    "texture on the object or a textured support helps SfM", 100 * sil,
+                    100 * settings.min_silhouette_consistency)
     diag = {
         "source": "sfm",
         "views": n,
@@ -871,6 +953,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
         "mean_reprojection_error_px": mre,
         "points3D": int(rec.num_points3D()),
         "points3D_in_masks": int(in_mask.sum()),
+        "silhouette_consistency": sil,
         "camera": {"model": colmap_cam.model_name, "params": list(map(float, colmap_cam.params)),
                    "width": colmap_cam.width, "height": colmap_cam.height,
                    "focal_prior_px": f_prior},

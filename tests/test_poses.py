@@ -278,7 +278,44 @@ def test_sfm_outputs_follow_the_contract(synthetic_sfm):
     assert (cam1.width, cam1.height) == (2 * w, 2 * h) and cam1.focal_length == pytest.approx(2 * f0)
     assert rec.compute_mean_reprojection_error() == pytest.approx(2 * e0, rel=1e-6)
     assert {"registered", "unregistered", "mean_reprojection_error_px", "timings", "trials"} <= set(diag)
+    assert diag["silhouette_consistency"] > 0.95
     assert json.loads((out / "poses.json").read_text())["registered"] == diag["registered"]
+
+
+def test_refinement_never_keeps_implausible_intrinsics(synthetic_sfm):
+    """The final free bundle adjustment once drifted on the demo (f 264 -> 1552 px, k = -58)
+    and emptied the visual hull. A refinement whose intrinsics leave the plausible range (here:
+    made implausible by a prior 3x off) is rejected and the mapped camera is kept."""
+    import pycolmap
+
+    _, results, _ = synthetic_sfm
+    rec = pycolmap.Reconstruction(results / "poses" / "sparse")
+    cam = next(iter(rec.cameras.values()))
+    shape, f = (cam.height, cam.width), cam.mean_focal_length()
+    settings = rp.PoseSettings(num_threads=1)
+    ok, info = rp._refine(pycolmap.Reconstruction(rec), settings, shape, f)
+    assert info["distortion"] in ("none", "estimated") and "rejected_free" not in info
+    assert next(iter(ok.cameras.values())).mean_focal_length() == pytest.approx(f, rel=0.05)
+    held, info = rp._refine(pycolmap.Reconstruction(rec), settings, shape, 3.0 * f)
+    assert info["distortion"] == "held as mapped" and "rejected_free" in info
+    np.testing.assert_allclose(next(iter(held.cameras.values())).params, cam.params)
+    assert info["reprojection_error_after_px"] <= info["reprojection_error_before_px"] + 1e-6
+    # silhouette consistency: ~1 for the right model, low when cameras and masks disagree
+    # (every camera turned 8 degrees about its own center: the object leaves the masks)
+    masks = {p.stem: read_mask(p) for p in sorted((results / "masks").glob("*.png"))}
+    right = rp.silhouette_consistency(rec, masks)
+    c, s_ = np.cos(np.radians(8.0)), np.sin(np.radians(8.0))
+    yaw = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]])
+    for i in rec.reg_image_ids():
+        frame = rec.frames[rec.images[i].frame_id]
+        M = np.asarray(frame.rig_from_world.matrix())
+        frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(yaw @ M[:, :3]), yaw @ M[:, 3])
+    wrong = rp.silhouette_consistency(rec, masks)
+    assert right > 0.95 and wrong < 0.7, (right, wrong)
+    assert rp.silhouette_consistency(rec, {}) is None
+    # the order of mapping trials: with an EXIF focal length the held-intrinsics mapper first
+    assert rp._mapper_sequence(rp.PoseSettings(), True)[0] == "incremental_fixed"
+    assert "incremental_fixed" not in rp._mapper_sequence(rp.PoseSettings(), False)
 
 
 def test_sfm_on_real_photos(shared_data, tmp_path):
