@@ -435,6 +435,25 @@ def compare(richer: np.ndarray, current: np.ndarray, s: SelectionSettings) -> di
             "trimmed": 2 * g, "accepted": accept}
 
 
+def nested_init(current: Fit, init_maps: dict) -> dict:
+    """Where a richer candidate starts: the accepted (simpler) fit's maps, so the candidate begins
+    at the simpler model's solution (a new texture starts flat at the fitted uniform value, a new
+    RGB specular grey), and the main loop's maps only for what the current model lacks (specular
+    and roughness after "diffuse only").
+
+    Starting every candidate from the main loop's maps instead made textured roughness look
+    worse than uniform on held-out views (0.060 vs 0.048 on a glossy blob, 24 views 256x192):
+    that roughness map came from a joint fit that had traded roughness against specular; warm
+    started from the uniform fit, the same candidate gained 8.7 % at 7.6 SE (roughness
+    correlation with the truth 0.89).
+    """
+    init = {"diffuse": current.maps["diffuse"]}
+    has_specular = current.model.specular != "none"
+    init["specular"] = current.maps["specular"] if has_specular else init_maps["specular"]
+    init["roughness"] = current.maps["roughness"] if has_specular else init_maps["roughness"]
+    return init
+
+
 def select_material(mesh: Mesh, init_maps: dict, covered: np.ndarray, train: ViewSet, heldout: ViewSet,
                     light: float, tone_scale: float, s: SelectionSettings, spp: int = 4, seed: int = 0,
                     progress=None) -> tuple[Fit, dict]:
@@ -459,15 +478,15 @@ def select_material(mesh: Mesh, init_maps: dict, covered: np.ndarray, train: Vie
 
     problem = _Problem(gb_train, train, s.tone_map, tone_scale)
 
-    def evaluate(model: MaterialModel) -> Fit:
-        fit = fit_model(model, gb_train, train, init_maps, covered, light, tone_scale, s, problem)
+    def evaluate(model: MaterialModel, init: dict) -> Fit:
+        fit = fit_model(model, gb_train, train, init, covered, light, tone_scale, s, problem)
         fit.tile_errors = tile_errors(fit.maps, model, gb_held, heldout, light, tone_scale, s)
         fit.heldout = float(np.nanmean(fit.tile_errors))
         if progress is not None:
             progress(model, fit)
         return fit
 
-    current = evaluate(DIFFUSE_ONLY)
+    current = evaluate(DIFFUSE_ONLY, init_maps)
     rows = [{"step": "diffuse only", "model": DIFFUSE_ONLY.to_dict(), "heldout_error": current.heldout,
              "train_loss": current.train_loss, "seconds": current.seconds, "accepted": True,
              "gain": None, "se": None, "relative_gain": None}]
@@ -478,7 +497,7 @@ def select_material(mesh: Mesh, init_maps: dict, covered: np.ndarray, train: Vie
         if cand is None or cand in tried:
             continue
         tried.add(cand)
-        fit = evaluate(cand)
+        fit = evaluate(cand, nested_init(current, init_maps))
         cmp = compare(fit.tile_errors, current.tile_errors, s)
         rows.append({"step": name, "model": cand.to_dict(), "heldout_error": fit.heldout,
                      "train_loss": fit.train_loss, "seconds": fit.seconds, **cmp})
