@@ -85,9 +85,18 @@ def test_compare_accepts_a_clear_gain_and_rejects_noise():
     noise = rng.normal(0, 0.002, 400)
     assert not compare(base + noise, base, s)["accepted"]  # no real change
     better = base * 0.9 + noise
-    better[:8] += 0.5  # a few tiles where the richer fit extrapolates badly
     c = compare(better, base, s)
     assert c["accepted"] and c["gain"] > 0 and c["relative_gain"] == pytest.approx(0.1, abs=0.02)
+    # a gain only in the few highlight tiles (3 %) counts in full: no trimming by default
+    highlight = base + noise
+    highlight[:12] -= 0.05
+    c = compare(highlight, base, s)
+    assert c["accepted"] and c["gain"] == pytest.approx(0.05 * 12 / 400, rel=0.2)
+    assert not compare(highlight, base, dataclasses.replace(s, trim=0.05))["accepted"]  # trimmed away
+    # the same gain everywhere but a few tiles where the richer fit extrapolates badly: worse overall
+    bad = better.copy()
+    bad[:8] += 0.5
+    assert not compare(bad, base, s)["accepted"]
     assert not compare(base * 0.999, base, s)["accepted"]  # consistent but below min_gain
     assert not compare(np.full(2, 0.0), np.full(2, 1.0), s)["accepted"]  # too few tiles to tell
 
