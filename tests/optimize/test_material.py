@@ -122,29 +122,29 @@ SMALL = dict(object="blob", n_views=24, width=128, height=96, format="exr", spp=
              texture_size=256, write_masks=True, write_cameras=True, write_gt_linear=False)
 
 
-def _problem(cap):
+def _problem(cap, size=128):
     mesh = read_obj(cap / "gt" / "mesh.obj")
     cams = load_cameras(cap / "cameras.json")
     views = Views([cap / c.image for c in cams.frames], [cap / "masks" / f"{c.stem}.png" for c in cams.frames],
-                  None, cams, 128)
+                  None, cams, size)
     held = [i for i in range(len(views)) if i % 4 == 2]
     train = [i for i in range(len(views)) if i % 4 != 2]
-    return mesh, views, views.subset(train).at(128), views.subset(held).at(128)
+    return mesh, views, views.subset(train).at(size), views.subset(held).at(size)
 
 
-def _select(cap):
+def _select(cap, size=128, spp=4):
     """Fit the full model on the true mesh (as the main loop would), then select."""
-    mesh, views, train, held = _problem(cap)
+    mesh, views, train, held = _problem(cap, size)
     T = 256
     covered = rasterize_atlas(mesh, T)[0] >= 0
     const = {"diffuse": np.full((T, T, 3), 0.3, np.float32), "specular": np.full((T, T, 1), 0.1, np.float32),
              "roughness": np.full((T, T, 1), 0.4, np.float32)}
     s = SelectionSettings(iterations=150)
     light, scale = views.light_intensity, views.median_foreground
-    gb = build_gbuffer(mesh, list(train.cameras), 4, 0)
+    gb = build_gbuffer(mesh, list(train.cameras), spp, 0)
     full = fit_model(MaterialModel(), gb, train, const, covered, light, scale, dataclasses.replace(s, iterations=300),
                      _Problem(gb, train, s.tone_map, scale))
-    fit, evidence = select_material(mesh, full.maps, covered, train, held, light, scale, s)
+    fit, evidence = select_material(mesh, full.maps, covered, train, held, light, scale, s, spp=spp)
     for m in fit.maps.values():
         assert np.all(np.isfinite(m))
     return fit, evidence
@@ -162,9 +162,24 @@ def test_diffuse_object_selects_diffuse_only(tmp_path):
 
 @pytest.fixture(scope="module")
 def glossy_selection(tmp_path_factory):
-    cap = make_capture(tmp_path_factory.mktemp("glossy") / "cap", SynthSettings(**SMALL))
-    fit, ev = _select(cap)
+    """The glossy spatially varying blob (specular bands, three roughness sectors 0.18/0.4/0.75),
+    40 views 192x144, every 4th held out. Measured (session 3, seeds 0 and 1): textured mono
+    specular and textured roughness chosen, roughness gain 6-7 % of the held-out error at 2.3-4.6
+    SE. On 24 views of 128x96 the roughness gain was within the noise (the data did not support
+    it, and the selection rightly said no)."""
+    cap = make_capture(tmp_path_factory.mktemp("glossy") / "cap",
+                       SynthSettings(**{**SMALL, "n_views": 40, "width": 192, "height": 144}))
+    fit, ev = _select(cap, size=192, spp=2)
     return cap, fit, ev
+
+
+def _corr_with_truth(cap, fit, name):
+    """Correlation of a recovered map with the true one over the covered texels (same atlas:
+    the true mesh is used)."""
+    gt = read_exr(cap / "gt" / f"{name}.exr").reshape(256, 256)
+    covered = rasterize_atlas(read_obj(cap / "gt" / "mesh.obj"), 256)[0] >= 0
+    rec = fit.maps[name][..., 0]
+    return float(np.corrcoef(rec[covered], gt[covered])[0, 1])
 
 
 def test_glossy_spatially_varying_object_selects_textured_specular(glossy_selection):
@@ -172,21 +187,17 @@ def test_glossy_spatially_varying_object_selects_textured_specular(glossy_select
     assert ev["chosen"]["specular"] == "textured", ev["candidates"]
     # the true specular albedo is grey: RGB must not pay off
     assert ev["chosen"]["specular_color"] == "mono", ev["candidates"]
-    errors = [r["heldout_error"] for r in ev["candidates"] if r["accepted"]]
-    assert errors == sorted(errors, reverse=True)
-    # the recovered specular albedo follows the true bands over the surface (same atlas: the
-    # true mesh is used): correlated over the covered texels
-    gt = read_exr(cap / "gt" / "specular.exr").reshape(256, 256)
-    covered = rasterize_atlas(read_obj(cap / "gt" / "mesh.obj"), 256)[0] >= 0
-    rec = fit.maps["specular"][..., 0]
-    corr = float(np.corrcoef(rec[covered], gt[covered])[0, 1])
+    for r in ev["candidates"][1:]:  # every accepted step beat its control
+        if r["accepted"]:
+            assert r["heldout_error"] < r["control_heldout_error"]
+    # the recovered specular albedo follows the true bands over the surface
+    corr = _corr_with_truth(cap, fit, "specular")
     assert corr > 0.3, corr
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "known limitation (session 2): on this 24-view 128x96 capture the spatially varying roughness "
-    "lowers the held-out error (0.072 -> 0.065-0.079 by run) but only by ~1-2 SE of the paired per-tile "
-    "difference, below the 2 SE bar; more held-out pixels (larger captures) are needed to show it"))
 def test_glossy_spatially_varying_object_selects_textured_roughness(glossy_selection):
-    _, _, ev = glossy_selection
+    cap, fit, ev = glossy_selection
     assert ev["chosen"]["roughness"] == "textured", ev["candidates"]
+    corr = _corr_with_truth(cap, fit, "roughness")
+    print(f"\nroughness correlation with the truth {corr:.2f}; specular {_corr_with_truth(cap, fit, 'specular'):.2f}")  # noqa: T201
+    assert corr > 0.3, corr
