@@ -41,7 +41,10 @@ class Parameterization:
 
     def raw(self, value) -> torch.Tensor:
         """Inverse of :meth:`value` (values outside the range are clipped into it first)."""
-        v = torch.as_tensor(np.asarray(value, dtype=np.float32))
+        if isinstance(value, torch.Tensor):
+            v = value.detach().to(torch.float32)
+        else:  # a copy: maps may be read-only numpy views (np.broadcast_to of a uniform value)
+            v = torch.from_numpy(np.array(value, dtype=np.float32))
         if self.kind == "sigmoid":
             t = ((v - self.lo) / (self.hi - self.lo)).clamp(EPS, 1 - EPS)
             return torch.log(t) - torch.log1p(-t)
