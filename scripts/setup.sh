@@ -10,7 +10,12 @@ root=$(pwd)
 log() { printf '[setup] %s\n' "$*" >&2; }
 
 # ---- System libraries ----
+py=${PYTHON:-python3.11}
+command -v "$py" >/dev/null 2>&1 || py=python3
 need_pkgs=()
+# Debian's python3.x ships without ensurepip; `python -m venv` needs python3.x-venv
+"$py" -c 'import ensurepip' >/dev/null 2>&1 || \
+  need_pkgs+=("$("$py" -c 'import sys; print("python%d.%d-venv" % sys.version_info[:2])')")
 ls /usr/lib/x86_64-linux-gnu/libLLVM-19.so* >/dev/null 2>&1 || ls /usr/lib/*/libLLVM.so.19* >/dev/null 2>&1 || need_pkgs+=(libllvm19)
 ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || need_pkgs+=(libusb-1.0-0)
 ldconfig -p 2>/dev/null | grep -q 'libgomp.so.1' || need_pkgs+=(libgomp1)
@@ -44,8 +49,6 @@ for lock in tools/*/package-lock.json; do
 done
 
 # ---- Python environment ----
-py=${PYTHON:-python3.11}
-command -v "$py" >/dev/null 2>&1 || py=python3
 stamp=.venv/.setup-stamp
 want=$(cat requirements.txt requirements-dev.txt pyproject.toml | sha256sum | cut -d' ' -f1)
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && [ -x .venv/bin/python ]; then
