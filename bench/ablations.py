@@ -504,12 +504,28 @@ def _smooth(y, k: int = 15):
     return np.convolve(y, np.ones(k) / k, mode="valid"), k
 
 
-def plot_gradients(out: Path, docs: Path, M: dict) -> str | None:
+def _pyplot():
+    """matplotlib.pyplot on the file-only Agg backend."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, docs: Path, name: str) -> str:
+    """Write ``fig`` to ``docs/name`` (the figures' common size and layout) and close it."""
+    fig.tight_layout()
+    fig.savefig(docs / name, dpi=110)
+    _pyplot().close(fig)
+    return name
+
+
+def plot_gradients(out: Path, docs: Path, M: dict) -> str | None:
     import matplotlib.ticker
+
+    plt = _pyplot()
 
     curves = {lab: _log_curve(out, n) for n, lab in (
         ("base", "edge sampling (ours)"), ("grad_none", "interior only"),
@@ -552,18 +568,11 @@ def plot_gradients(out: Path, docs: Path, M: dict) -> str | None:
     a1.set_ylabel("final accuracy (unit bbox)")
     a1.set_title("Accuracy against time per gradient method")
     a1.legend(fontsize=8)
-    fig.tight_layout()
-    name = "ablations_gradients.png"
-    fig.savefig(docs / name, dpi=110)
-    plt.close(fig)
-    return name
+    return _save(fig, docs, "ablations_gradients.png")
 
 
 def plot_geometry(docs: Path, M: dict) -> str | None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
     import numpy as np
 
     variants = ("No Laplacian", "No normal/edge loss", "No coarse-to-fine")
@@ -589,18 +598,11 @@ def plot_geometry(docs: Path, M: dict) -> str | None:
     ax.set_ylabel("final accuracy / full method's")
     ax.set_title("Geometry ablations: how much worse than the full method")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    name = "ablations_geometry.png"
-    fig.savefig(docs / name, dpi=110)
-    plt.close(fig)
-    return name
+    return _save(fig, docs, "ablations_geometry.png")
 
 
 def plot_views(docs: Path, M: dict) -> str | None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
 
     pts = [(n, M[r]) for n, r in VIEW_RUNS.items() if M.get(r)]
     if not pts:
@@ -633,11 +635,7 @@ def plot_views(docs: Path, M: dict) -> str | None:
     a1.set_title("Image error against views")
     a1.set_ylim(bottom=0)
     a1.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.15), ncol=2)
-    fig.tight_layout()
-    name = "ablations_views.png"
-    fig.savefig(docs / name, dpi=110)
-    plt.close(fig)
-    return name
+    return _save(fig, docs, "ablations_views.png")
 
 
 # ---- The report ----
@@ -1044,15 +1042,11 @@ def material_stats(out: Path, name: str, n: int = 20000) -> dict | None:
     from recon.io.images import read_exr
     from recon.io.mesh import read_mesh
     from recon.optimize.remesh import bilinear_lookup, surface_uv
+    from recon.report.gt import sample_surface_uv
 
     cap = Path(json.loads(bench.read_text())["capture"])
     gt, rec = read_mesh(cap / "gt" / "mesh.obj"), read_mesh(rdir / "optimize" / "mesh.obj")
-    rng = np.random.default_rng(1)
-    area = np.linalg.norm(gt.face_normals(), axis=1)
-    f = rng.choice(len(area), n, p=area / area.sum())
-    b = rng.dirichlet([1, 1, 1], n)
-    p = np.einsum("nk,nkd->nd", b, gt.v_pos[gt.t_pos_idx[f]])
-    uv_gt = np.einsum("nk,nkd->nd", b, gt.v_tex[gt.t_tex_idx[f]])
+    p, uv_gt = sample_surface_uv(gt, n, np.random.default_rng(1))
     uv_rec = surface_uv(rec, p)
     look = lambda d, k, uv: bilinear_lookup(read_exr(d / f"{k}.exr"), uv)  # noqa: E731
     lum = look(cap / "gt", "diffuse", uv_gt)[:, :3] @ np.array([0.2126, 0.7152, 0.0722])

@@ -101,13 +101,9 @@ def render(mesh: Mesh, maps: dict, cams: list[Camera], light: float, spp: int = 
 def texture_errors(rec: Mesh, maps: dict, gt: Mesh, gt_maps: dict, n: int = 20000) -> dict:
     """Per map: mean |rec - gt| over area-uniform gt surface points (rec looked up at the closest point)."""
     from recon.optimize.remesh import bilinear_lookup, surface_uv
+    from recon.report.gt import sample_surface_uv
 
-    rng = np.random.default_rng(0)
-    area = np.linalg.norm(gt.face_normals(), axis=1)
-    f = rng.choice(len(area), n, p=area / area.sum())
-    b = rng.dirichlet([1, 1, 1], n)
-    p = np.einsum("nk,nkd->nd", b, gt.v_pos[gt.t_pos_idx[f]])
-    uv_gt = np.einsum("nk,nkd->nd", b, gt.v_tex[gt.t_tex_idx[f]])
+    p, uv_gt = sample_surface_uv(gt, n, np.random.default_rng(0))
     uv_rec = surface_uv(rec, p)
     out = {}
     for k in ("diffuse", "specular", "roughness"):
