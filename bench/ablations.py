@@ -987,7 +987,16 @@ def _section_gradients(out: Path, M: dict, plots: dict, spread) -> list[str]:
                "same images as our renderer but its vertex-position derivatives fail a finite-difference check "
                "in this set-up (a seamless crude mesh, so not the UV-seam bias its docstring warns about); the "
                "projective rows measure that defect. The paper's Mitsuba 2 column (reparameterization, biased) "
-               "cannot be reproduced with this stack either way.")
+               "cannot be reproduced with this stack either way.\n\n"
+               "*Where the defect is (session 3, open)*: not the UV-seam bias (this crude mesh has no seam). "
+               "`python bench/mitsuba_grad_probe.py [--views 2] [--res 96]` compares the scene's directional "
+               "derivatives with ours and with finite differences on a bumpy sphere, but one 16-spp gradient run "
+               "is too noisy to decide (at 64 px even our own gradient is 2-4x off on translation and scale; at "
+               "96 px, one view, every route is within 5-25 %). The leading suspect, from reading the code: "
+               "`MitsubaScene.render` moves the one point light to each view's camera and calls `mi.render` per "
+               "view, while Mitsuba's render op replays the scene in its backward pass as it is *then*, with the "
+               "light at the last view, so every view but the last gets gradients for the wrong light. The fix "
+               "would be a light per view (or a scene per view); not done.")
     w(pj)
     w("")
     if gc:

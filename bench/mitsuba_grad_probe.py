@@ -31,6 +31,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--res", type=int, default=96)
     ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--views", type=int, default=1, help="1, or 2: a second view from another side (own light)")
     args = ap.parse_args(argv)
     sc = bench_render.make_scene(args.res)
     ours = CollocatedRenderer(sc["f"], sc["t"], sc["ft"], RenderSettings(spp=args.spp, boundary="edge"))
@@ -40,12 +41,21 @@ def main(argv=None) -> int:
     direct, proj = MitsubaScene(ours, "direct"), MitsubaScene(ours, "direct_projective")
     maps = (sc["diffuse"], sc["specular"], sc["roughness"])
     cams, light, h = [sc["cam"]], 12.0, 5e-3
+    if args.views == 2:
+        from recon.io.cameras import Camera, intrinsics, look_at
+
+        cams.append(Camera("second.png", args.res, args.res, intrinsics(args.res, args.res, 40.0),
+                           look_at((-2.8, -2.4, 1.4), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))))
+        sc["w"] = np.stack([sc["w"], sc["w"][::-1]])  # a different weighting per view
 
     def loss(img) -> float:
         return float((np.asarray(img, np.float64) * sc["w"]).sum())
 
+    def ours_img(v):
+        return np.stack([im.numpy() for im in fd_r.render(v, *maps, cams, light, 0)])
+
     def mi_img(v):
-        return direct.render(mi.TensorXf(v.astype(np.float32)), *maps, cams, light, 0, 256).numpy()[0]
+        return direct.render(mi.TensorXf(v.astype(np.float32)), *maps, cams, light, 0, 256).numpy()
 
     methods = {
         "ours (edge)": lambda v, s: ours.render_batch(v, *maps, cams, light, s),
@@ -55,8 +65,7 @@ def main(argv=None) -> int:
     }
     grads = {k: bench_render._loss_grad(fn, mi, dr, sc, 1)[0] for k, fn in methods.items()}
     for name, d in sc["dirs"].items():
-        fd = (loss(fd_r.render(sc["v"] + h * d, *maps, cams, light, 0)[0].numpy())
-              - loss(fd_r.render(sc["v"] - h * d, *maps, cams, light, 0)[0].numpy())) / (2 * h)
+        fd = (loss(ours_img(sc["v"] + h * d)) - loss(ours_img(sc["v"] - h * d))) / (2 * h)
         mfd = (loss(mi_img(sc["v"] + h * d)) - loss(mi_img(sc["v"] - h * d))) / (2 * h)
         pred = "  ".join(f"{k} {float((g * d).sum()):.4g}" for k, g in grads.items())
         bench_render.out(f"{name}: FD ours {fd:.4g}  FD mitsuba {mfd:.4g}  |  {pred}")
