@@ -493,7 +493,7 @@ def _drop_weak_views(rec, min_points: int) -> dict[str, int]:
     return weak
 
 
-def _refine(rec, settings: PoseSettings, shape=None, f_prior: float | None = None):
+def _refine(rec, settings: PoseSettings, shape, f_prior: float | None = None):
     """Final bundle adjustment with a robust (Cauchy) loss; returns (reconstruction, info).
 
     Wrong matches that survived verification (repeated texture, highlights) then pull much
@@ -503,7 +503,7 @@ def _refine(rec, settings: PoseSettings, shape=None, f_prior: float | None = Non
     distortion, which then trades off against the focal length (seen in tests: f 13% off with
     k = -0.37 on distortion-free images).
 
-    ``shape`` (H, W) given, a candidate whose intrinsics drift to implausible values
+    A candidate (``shape``: the images' (H, W)) whose intrinsics drift to implausible values
     (``_intrinsics_ok``) is rejected, even with the lower error: on the 192x144 demo a free
     adjustment once went from f = 264 px to f = 1552 px with k = -58 (error 0.43 -> 0.35 px),
     which undistorted every view into nonsense and emptied the visual hull. If no free
@@ -521,7 +521,7 @@ def _refine(rec, settings: PoseSettings, shape=None, f_prior: float | None = Non
         return float(r.compute_mean_reprojection_error())
 
     def plausible(r) -> bool:
-        return shape is None or _intrinsics_ok(r, shape, f_prior)
+        return _intrinsics_ok(r, shape, f_prior)
 
     before = float(rec.compute_mean_reprojection_error())
     info = {"reprojection_error_before_px": before}

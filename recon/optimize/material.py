@@ -418,8 +418,9 @@ def compare(richer: np.ndarray, current: np.ndarray, s: SelectionSettings) -> di
     Accepted when gain > z * SE and gain > min_gain * (the current model's mean error). With
     ``s.trim`` > 0 the gain is Yuen's trimmed mean (that fraction of tiles dropped at each end,
     SE from the winsorized variance); the default 0 keeps every tile, because the gain of a
-    specular or roughness model sits in the few highlight tiles (on a glossy blob the top 2 %
-    of tiles carried 160-210 % of the net gain) and a trim removes exactly those.
+    specular or roughness model sits in the few highlight tiles and a trim removes exactly those
+    (``bench/selection.py``, glossy blob, seed 0: the top 2 % of tiles carry 156 % of the
+    textured-roughness gain; a 2 % trim cuts that gain from 0.0058 to 0.0010).
     """
     ok = np.isfinite(richer) & np.isfinite(current)
     d = np.sort(current[ok] - richer[ok])
@@ -446,13 +447,11 @@ def nested_init(current: Fit, init_maps: dict, candidate: MaterialModel | None =
     and roughness after "diffuse only").
 
     A candidate that makes roughness vary starts its specular albedo flat too (at the fitted
-    map's mean): under a uniform roughness the fitted specular map has absorbed the roughness
-    pattern (bright where the true lobe is sharp), and from there the pair stays in that trade-off;
-    restarted flat, both are learned together, coarse levels first. Measured on a glossy blob
-    (24 views 256x192, the true mesh): held-out error 0.0502 from the textured specular fit,
-    0.0448 from a flat specular, control 0.0491; roughness correlation with the truth 0.38 / 0.47.
-    Starting every candidate from the main loop's maps (the first design) was worse still (0.060):
-    that roughness map came from a joint fit that had traded roughness against specular.
+    map's mean): under a uniform roughness the fitted specular map absorbs the roughness pattern
+    (bright where the true lobe is sharp), a trade-off the pair does not leave when warm-started
+    from it; restarted flat, both are learned together, coarse levels first. Starting every
+    candidate from the main loop's maps (the first design) met the same trap with the main
+    loop's jointly fitted roughness. ``bench/selection.py`` shows the current result.
     """
     init = {"diffuse": current.maps["diffuse"]}
     has_specular = current.model.specular != "none"

@@ -163,10 +163,10 @@ def test_diffuse_object_selects_diffuse_only(tmp_path):
 @pytest.fixture(scope="module")
 def glossy_selection(tmp_path_factory):
     """The glossy spatially varying blob (specular bands, three roughness sectors 0.18/0.4/0.75),
-    40 views 192x144, every 4th held out. Measured (session 3, seeds 0 and 1): textured mono
-    specular and textured roughness chosen, roughness gain 6-7 % of the held-out error at 2.3-4.6
-    SE. On 24 views of 128x96 the roughness gain was within the noise (the data did not support
-    it, and the selection rightly said no)."""
+    40 views 192x144, every 4th held out. ``bench/selection.py --seed 0`` / ``--seed 1``: textured
+    mono specular and textured roughness chosen, roughness gain 6.1 % / 5.2 % of the held-out error
+    at 3.0 / 4.6 SE. On 24 views of 128x96 (``--views 24 --width 128 --height 96 --spp 4``) the
+    roughness model does not generalize and is rejected."""
     cap = make_capture(tmp_path_factory.mktemp("glossy") / "cap",
                        SynthSettings(**{**SMALL, "n_views": 40, "width": 192, "height": 144}))
     fit, ev = _select(cap, size=192, spp=2)
