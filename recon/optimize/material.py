@@ -184,8 +184,11 @@ def build_gbuffer(mesh: Mesh, cameras: list[Camera] | tuple[Camera, ...], spp: i
             uv_all.append(uv.astype(np.float32))
             mu_all.append(mu.astype(np.float32))
             d2_all.append((1.0 / np.maximum(tt * tt, 1e-30)).astype(np.float32))
-    cat = (lambda xs, dt, shp: torch.from_numpy(np.concatenate(xs).astype(dt)) if xs
-           else torch.zeros(shp, dtype=torch.float32 if dt != np.int64 else torch.int64))
+    def cat(xs, dt, shp):
+        if xs:
+            return torch.from_numpy(np.concatenate(xs).astype(dt))
+        return torch.zeros(shp, dtype=torch.float32 if dt != np.int64 else torch.int64)
+
     return GBuffer(cat(pix_all, np.int64, (0,)), cat(uv_all, np.float32, (0, 2)), cat(mu_all, np.float32, (0,)),
                    cat(d2_all, np.float32, (0,)), spp, (len(cameras), H, W))
 
