@@ -63,8 +63,7 @@ class MitsubaScene:
         uv[:, 1] = 1.0 - uv[:, 1]  # OBJ (v up) -> Mitsuba (uv.y = 0 at the first row)
         self._faces = faces
         self._uv = uv
-        self._scene = None
-        self._params = None
+        self._scenes: list = []  # (scene, params) per view of a batch, see render()
         self._tex_shapes = None
         if integrator == "direct_projective":
             self._integrator = mi.load_dict({"type": "direct_projective", "sppi": 0})
@@ -72,7 +71,8 @@ class MitsubaScene:
             self._integrator = mi.load_dict(
                 {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0})
 
-    def _build(self, textures: dict):
+    def _build_scene(self, textures: dict):
+        """One scene (mesh, BSDF, point light) and its parameters; textures get their shapes."""
         from recon.render.mitsuba_bsdf import bsdf_dict
 
         mi = self.mi
@@ -88,15 +88,14 @@ class MitsubaScene:
         mp["vertex_texcoords"] = mi.Float(self._uv.reshape(-1))
         mp["vertex_positions"] = self.dr.zeros(mi.Float, 3 * self.n_split)
         mp.update()
-        self._scene = mi.load_dict({
+        scene = mi.load_dict({
             "type": "scene",
             "integrator": self._integrator,
             "light": {"type": "point", "position": [0.0, 0.0, 0.0],
                       "intensity": {"type": "rgb", "value": [1.0, 1.0, 1.0]}},
             "object": mesh,
         })
-        self._params = mi.traverse(self._scene)
-        self._tex_shapes = dict(textures)
+        return scene, mi.traverse(scene)
 
     def render(self, v_pos, diffuse, specular, roughness, cameras: Sequence[Camera],
                light_intensity: float, seed: int, spp: int):
@@ -109,29 +108,32 @@ class MitsubaScene:
             "roughness": _as_tensor(mi, roughness),
         }
         shapes = {k: tuple(t.shape) for k, t in tex.items()}
-        if self._scene is None or shapes != self._tex_shapes:
-            self._build(shapes)
-        p = self._params
+        if shapes != self._tex_shapes:
+            self._scenes, self._tex_shapes = [], shapes
+        while len(self._scenes) < len(cameras):
+            self._scenes.append(self._build_scene(shapes))
         n_flat = r._vertex_normals(v_flat, nv)
         v_np = dr.detach(v_flat).numpy().reshape(-1, 3)  # for the sensors' clip planes
-        pos = dr.gather(mi.Point3f, v_flat, self._split_pos)
-        nrm = dr.gather(mi.Vector3f, n_flat, self._split_pos)
-        p["object.vertex_positions"] = dr.ravel(pos)
-        p.update()
-        # Setting positions makes Mitsuba recompute its own (angle-weighted) normals: use ours.
-        p["object.vertex_normals"] = dr.ravel(nrm)
-        p["object.bsdf.diffuse.data"] = tex["diffuse"]
-        p["object.bsdf.specular.data"] = tex["specular"]
-        p["object.bsdf.roughness.data"] = tex["roughness"]
-        p["light.intensity.value"] = mi.Color3f(float(light_intensity))
-        p.update()
+        pos = dr.ravel(dr.gather(mi.Point3f, v_flat, self._split_pos))
+        nrm = dr.ravel(dr.gather(mi.Vector3f, n_flat, self._split_pos))
         images = []
         for i, cam in enumerate(cameras):
+            # One scene per view of the batch: mi.render's backward pass replays the scene in the
+            # state it has then, so a light moved for a later view would light every earlier one.
+            scene, p = self._scenes[i]
+            p["object.vertex_positions"] = pos
+            p.update()
+            # Setting positions makes Mitsuba recompute its own (angle-weighted) normals: use ours.
+            p["object.vertex_normals"] = nrm
+            p["object.bsdf.diffuse.data"] = tex["diffuse"]
+            p["object.bsdf.specular.data"] = tex["specular"]
+            p["object.bsdf.roughness.data"] = tex["roughness"]
+            p["light.intensity.value"] = mi.Color3f(float(light_intensity))
             p["light.position"] = mi.Point3f(*[float(x) for x in cam.center])
             p.update()
             sensor = mi.load_dict({**mitsuba_sensor_dict(cam, spp=spp, sample_border=True),
                                    **clip_range(cam, v_np)})
-            img = mi.render(self._scene, p, sensor=sensor, spp=spp,
+            img = mi.render(scene, p, sensor=sensor, spp=spp,
                             seed=(int(seed) * 1009 + i) % 2**32, seed_grad=(int(seed) * 1009 + i + 7) % 2**32)
             images.append(img[:, :, :3])
         h, w = int(cameras[0].height), int(cameras[0].width)
