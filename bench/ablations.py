@@ -92,26 +92,6 @@ def scaled_stages(factor: float) -> list[dict]:
     """The base stages with every stage's iterations times ``factor`` (at least 1 each)."""
     return [dict(s, iterations=max(1, round(s["iterations"] * factor))) for s in BASE_STAGES]
 
-# Work-around, projective runs only: recon/render/mitsuba_scene.py passes mi.render a seed of
-# render_seed() * 1009 + i, which exceeds 32 bits for most seeds the optimize loop draws (< 2^31),
-# and Mitsuba's sampler.seed() raises TypeError ("incompatible function arguments"). The shim
-# wraps mi.render to pass both seeds as opaque mi.UInt32 (mod 2^32; an opaque seed is also not
-# baked into the kernels, so they are not recompiled per call), then runs bench/optimize.py's
-# command line unchanged. Harmless once the seed is fixed there.
-PROJECTIVE_SEED_SHIM = """
-import runpy, sys
-import drjit as dr
-from recon.mi import load_variant
-mi = load_variant()
-_render = mi.render
-def render(*args, seed=0, seed_grad=0, **kw):
-    return _render(*args, seed=dr.opaque(mi.UInt32, int(seed) % 2**32),
-                   seed_grad=dr.opaque(mi.UInt32, int(seed_grad) % 2**32), **kw)
-mi.render = render
-sys.argv = sys.argv[1:]
-runpy.run_path(sys.argv[0], run_name="__main__")
-"""
-
 
 def _known_pins() -> dict:
     """NEUTRAL_PINS restricted to the keys the optimize settings of this tree know."""
@@ -157,8 +137,7 @@ class Run:
     def command(self, out: Path, stages=None) -> list[str]:
         values = dict(BASE_SET, **_known_pins(), **self.overrides)
         values["stages"] = stages_value(stages if stages is not None else scaled_stages(self.iter_factor))
-        shim = ["-c", PROJECTIVE_SEED_SHIM] if values["boundary"] == "projective" else []
-        cmd = [str(PY), *shim, str(REPO / "bench" / "optimize.py"), str(out / "captures" / self.capture),
+        cmd = [str(PY), str(REPO / "bench" / "optimize.py"), str(out / "captures" / self.capture),
                "--preset", PRESET]
         for k, v in values.items():
             cmd += ["--set", f"{k}={str(v).lower() if isinstance(v, bool) else v}"]

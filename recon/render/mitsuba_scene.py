@@ -133,8 +133,10 @@ class MitsubaScene:
             p.update()
             sensor = mi.load_dict({**mitsuba_sensor_dict(cam, spp=spp, sample_border=True),
                                    **clip_range(cam, v_np)})
+            # Opaque seeds: a literal seed would be baked into the kernels (recompiled every call).
             img = mi.render(scene, p, sensor=sensor, spp=spp,
-                            seed=(int(seed) * 1009 + i) % 2**32, seed_grad=(int(seed) * 1009 + i + 7) % 2**32)
+                            seed=dr.opaque(mi.UInt32, (int(seed) * 1009 + i) % 2**32),
+                            seed_grad=dr.opaque(mi.UInt32, (int(seed) * 1009 + i + 7) % 2**32))
             images.append(img[:, :, :3])
         h, w = int(cameras[0].height), int(cameras[0].width)
         flat = dr.concat([im.array for im in images]) if len(images) > 1 else images[0].array
