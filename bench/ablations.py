@@ -61,11 +61,11 @@ BASE_SET = {
     "lr_texture": 0.03,
     "w_edge": 0.01,
 }
-# Switches the lead added to the optimize stage during this study (held-out material selection,
-# stop on plateau; the draft preset turns them on). Off = the behaviour every run here had before
-# they existed, so they are pinned off where the settings know them and ignored when comparing
-# the commands of earlier runs.
-NEUTRAL_PINS = {"select_material": False, "stop_on_plateau": False}
+# Switches added to the optimize stage during this study (held-out material selection, stop on
+# plateau, the pixel-footprint limit on stage edge lengths; the presets turn them on). Off = the
+# behaviour every run here had before they existed, so they are pinned off where the settings
+# know them and ignored when comparing the commands of earlier runs.
+NEUTRAL_PINS = {"select_material": False, "stop_on_plateau": False, "min_edge_pixels": 0}
 PRESET = "draft"
 CRUDE = 0.04  # target accuracy of the shared crude initial mesh
 CRUDE_HARD = 0.09  # the paper's cruder end (maneki: 0.0878)

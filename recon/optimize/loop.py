@@ -40,7 +40,7 @@ from recon.optimize.material import compare, heldout_error, model_from_settings,
 from recon.optimize.params import TexturePyramid, albedo_param, constant_map, roughness_param
 from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, topology_report, unwrap
 from recon.optimize.settings import OptimizeSettings, StageSettings
-from recon.optimize.views import Views, ViewSet, render_loss
+from recon.optimize.views import Views, ViewSet, pixel_footprint, render_loss
 
 log = logging.getLogger(__name__)
 
@@ -449,9 +449,11 @@ def _run_stages(stages, start_stage, start_it, state, init, settings, views, bbo
     """The coarse-to-fine loop; returns the last stage (its accepted mesh and maps)."""
     st: _Stage | None = None
     prev_mesh, prev_maps = None, None
+    lo, hi = init.bbox()
+    footprint_full = pixel_footprint(views.cameras, (lo + hi) / 2)
     for si in range(start_stage, len(stages)):
         stage = stages[si]
-        h = float(stage.edge_length) * bbox_scale
+        h, h_min = _stage_edge_length(stage, settings, views, footprint_full, bbox_scale)
         t0 = time.perf_counter()
         if state is not None and si == start_stage:
             m = state["mesh"]
@@ -474,7 +476,8 @@ def _run_stages(stages, start_stage, start_it, state, init, settings, views, bbo
             log.info("stage %d: %d vertices, %d faces, %dx%d maps, %dx%d images, edge %.4g",
                      si, len(mesh.v_pos), len(mesh.t_pos_idx), stage.texture_size, stage.texture_size,
                      st.targets.cameras[0].width, st.targets.cameras[0].height, h)
-            stage_infos.append(_stage_info(st))
+            stage_infos.append({**_stage_info(st), "edge_length_requested": float(stage.edge_length) * bbox_scale,
+                                "edge_length_min": h_min})
             _save(ckpt_dir, fp, st, 0, records, stage_infos, timer, done=False)
         st.executor = executor
         for it in range(it0, int(stage.iterations)):
@@ -594,6 +597,20 @@ def _save(ckpt_dir, fp, st: _Stage, next_it: int, records, stage_infos, timer: _
                  done=done)
     ckpt.save(ckpt_dir, state)
     timer.add("setup", time.perf_counter() - t0)
+
+
+def _stage_edge_length(stage: StageSettings, settings: OptimizeSettings, views: Views, footprint_full: float,
+                       bbox_scale: float) -> tuple[float, float]:
+    """(edge length, its lower limit) of a stage in world units: the stage's ``edge_length``,
+    raised to ``min_edge_pixels`` pixel footprints at the stage's image size."""
+    W, H = views.cameras[0].width, views.cameras[0].height
+    factor = min(1.0, settings.stage_image_size(stage) / max(W, H))
+    h_min = float(settings.min_edge_pixels) * footprint_full / factor
+    h = float(stage.edge_length) * bbox_scale
+    if h < h_min:
+        log.info("stage edge length %.4g is below %.3g pixel footprints at %d px: using %.4g",
+                 h, settings.min_edge_pixels, settings.stage_image_size(stage), h_min)
+    return max(h, h_min), h_min
 
 
 def _stage_info(st: _Stage) -> dict:

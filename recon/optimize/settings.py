@@ -77,7 +77,10 @@ class OptimizeSettings:
 
     Schedule: ``stages`` (coarse to fine), ``views_per_iteration``, ``seed``,
     ``checkpoint_every`` (iterations), ``coarse_to_fine`` (False = ablation: one stage with the
-    last stage's mesh/texture size and all iterations).
+    last stage's mesh/texture size and all iterations), ``min_edge_pixels``: no stage remeshes
+    finer than this many pixel footprints (median over the views of depth / focal length at the
+    object's center, at the stage's image size), whatever its ``edge_length``; finer triangles
+    are not constrained by the photos and fit their noise (0 = no limit).
 
     Optimizer: ``optimizer`` "largesteps" (Nicolet et al. 2021: vertex positions through
     u = (I + lambda L) v, L the combinatorial Laplacian, and Adam on u) or "adam" (the paper:
@@ -123,6 +126,7 @@ class OptimizeSettings:
     seed: int = 0
     checkpoint_every: int = 50
     coarse_to_fine: bool = True
+    min_edge_pixels: float = 2.5
     optimizer: str = "largesteps"
     lr_geometry: float = 0.005
     lr_texture: float = 0.03
@@ -184,6 +188,8 @@ class OptimizeSettings:
         for name in ("resolution", "spp", "views_per_iteration", "checkpoint_every", "select_image_size", "select_spp"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.min_edge_pixels >= 0:
+            raise ValueError(f"min_edge_pixels must be >= 0, got {self.min_edge_pixels}")
         if int(self.texture_levels) < 1:
             raise ValueError(f"texture_levels must be >= 1, got {self.texture_levels}")
         if self.specular_channels not in (1, 3):

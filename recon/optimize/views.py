@@ -170,6 +170,20 @@ class Views:
         return ViewSet(torch.from_numpy(imgs), torch.from_numpy(weights), msks, cams)
 
 
+def pixel_footprint(cameras, point) -> float:
+    """World length one pixel spans at ``point``: the median over the views in front of it of
+    depth / focal length (pixels); 0 when no view sees the point in front of it."""
+    p = np.asarray(point, dtype=np.float64).reshape(3)
+    vals = []
+    for c in cameras:
+        w2c = np.asarray(c.world_to_camera, dtype=np.float64)
+        depth = float(w2c[2, :3] @ p + w2c[2, 3])
+        K = np.asarray(c.K, dtype=np.float64)
+        if depth > 0:
+            vals.append(depth / np.sqrt(K[0, 0] * K[1, 1]))
+    return float(np.median(vals)) if vals else 0.0
+
+
 # ---- Tone mapping and the rendering loss ----
 def tone_map(x: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
     """Phi: "log" = log(1 + x/scale), "srgb" = sRGB encoding of min(x, 1), "linear" = x."""

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from recon.io.images import read_exr
-from recon.io.mesh import read_obj
+from recon.io.mesh import read_mesh, read_obj
 from recon.optimize import OptimizeSettings, StageSettings, optimize_capture, settings_from_dict
 from recon.optimize.guard import self_intersecting_faces
 from recon.optimize.remesh import is_manifold
@@ -241,3 +241,33 @@ def test_guard_under_large_steps_is_deterministic_and_clean(capture, tmp_path):
     assert sum(r["guard_halvings"] > 0 for r in log) >= 3
     assert runs[0]["mesh"]["self_intersecting_faces"] == 0 and runs[0]["mesh"]["manifold"]
     np.testing.assert_array_equal(read_obj(tmp_path / "0" / "mesh.obj").v_pos, read_obj(tmp_path / "1" / "mesh.obj").v_pos)
+
+
+def test_stages_never_remesh_finer_than_the_pixels(capture, tmp_path):
+    """``min_edge_pixels``: a stage whose edge length is below that many pixel footprints (at its
+    image size) is remeshed at the limit instead; 0 keeps the requested lengths."""
+    from recon.io.cameras import load_cameras
+    from recon.optimize.views import pixel_footprint
+
+    root, _ = capture
+    images, masks, sats, cams, init = _inputs(root)
+    stages = (StageSettings(0.12, 32, 1, image_size=16), StageSettings(0.06, 32, 1))
+    free = optimize_capture(images, masks, sats, cams, init, tmp_path / "free",
+                            OptimizeSettings(**{**TINY.__dict__, "stages": stages, "min_edge_pixels": 0.0}),
+                            progress=False)
+    capped = optimize_capture(images, masks, sats, cams, init, tmp_path / "capped",
+                              OptimizeSettings(**{**TINY.__dict__, "stages": stages, "min_edge_pixels": 3.0}),
+                              progress=False)
+    m = read_mesh(init)
+    lo, hi = m.bbox()
+    frames = load_cameras(cams).frames
+    full = pixel_footprint(frames, (lo + hi) / 2)  # the capture's 32 px images
+    scale = float(np.max(hi - lo))
+    for k, (size, rel) in enumerate([(16, 0.12), (32, 0.06)]):
+        a, b = free["stages"][k], capped["stages"][k]
+        assert a["edge_length"] == pytest.approx(rel * scale)
+        assert b["edge_length_min"] == pytest.approx(3.0 * full * 32 / size, rel=1e-6)
+        assert b["edge_length"] == pytest.approx(max(rel * scale, b["edge_length_min"]))
+    # the second stage (32 px) asks for less than 3 pixels and is held at the limit: fewer faces
+    assert capped["stages"][1]["edge_length"] > 0.06 * scale
+    assert capped["stages"][1]["faces"] < free["stages"][1]["faces"]

@@ -91,3 +91,18 @@ def test_camera_file_round_trip(tmp_path):
 
     v = Views(imgs, masks, None, load_cameras(tmp_path / "cameras.json"), 4)
     assert v.cameras[0].width == 4 and v.saturated.sum() == 0
+
+
+def test_pixel_footprint_is_depth_over_focal_length():
+    from recon.optimize.views import pixel_footprint
+
+    W, H = 64, 48
+    K = intrinsics(W, H, 40)
+    near = Camera("a.png", W, H, K, look_at([0, -3, 0], [0, 0, 0]))
+    far = Camera("b.png", W, H, K, look_at([5, 0, 0], [0, 0, 0]))
+    behind = Camera("c.png", W, H, K, look_at([0, 3, 0], [0, 6, 0]))  # looks away from the point
+    f = K[0, 0]
+    assert pixel_footprint([near], [0, 0, 0]) == pytest.approx(3 / f)
+    assert pixel_footprint([near, far, behind], [0, 0, 0]) == pytest.approx(4 / f)  # median of 3 and 5
+    assert pixel_footprint([near.scaled(0.5)], [0, 0, 0]) == pytest.approx(6 / f)  # half the pixels
+    assert pixel_footprint([behind], [0, 0, 0]) == 0.0
