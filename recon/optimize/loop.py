@@ -135,7 +135,8 @@ def _build_stage(index, stage_settings, h, mesh, v_init, covered, map_values, se
     topo = reg.MeshTopology.from_faces(mesh.t_pos_idx, len(mesh.v_pos))
     ls = None
     if settings.optimizer == "largesteps":
-        ls = LargeSteps(mesh.t_pos_idx, len(mesh.v_pos), settings.largesteps_lambda)
+        ls = LargeSteps(mesh.t_pos_idx, len(mesh.v_pos),
+                        settings.largesteps_lambda * float(stage_settings.lambda_scale))
         geom0 = torch.from_numpy(ls.M @ mesh.v_pos)
     else:
         geom0 = torch.from_numpy(mesh.v_pos.copy())
@@ -621,6 +622,7 @@ def _stage_info(st: _Stage) -> dict:
         "image_size": [int(st.targets.cameras[0].width), int(st.targets.cameras[0].height)],
         "vertices": int(len(st.mesh.v_pos)),
         "faces": int(len(st.mesh.t_pos_idx)),
+        "largesteps_lambda": st.ls.lam if st.ls is not None else None,
     }
 
 

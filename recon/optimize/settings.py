@@ -30,6 +30,9 @@ class StageSettings:
     lr_scale : multiplies every learning rate in this stage (finer stages often take smaller steps).
     lr_decay : the learning rates fall exponentially within the stage, to ``lr_decay`` times their
         start at its last iteration (1 = constant).
+    lambda_scale : multiplies ``largesteps_lambda`` in this stage. The preconditioner smooths over
+        about sqrt(lambda) edges, so on a mesh with edges k times shorter ``lambda_scale = k**2``
+        keeps its smoothing length on the surface.
     """
 
     edge_length: float = 0.02
@@ -38,6 +41,7 @@ class StageSettings:
     image_size: int = 0
     lr_scale: float = 1.0
     lr_decay: float = 1.0
+    lambda_scale: float = 1.0
 
     def __post_init__(self):
         if not (0 < self.edge_length < 1):
@@ -50,6 +54,8 @@ class StageSettings:
             raise ValueError(f"image_size must be >= 0, got {self.image_size}")
         if not self.lr_scale > 0:
             raise ValueError(f"lr_scale must be > 0, got {self.lr_scale}")
+        if not self.lambda_scale > 0:
+            raise ValueError(f"lambda_scale must be > 0, got {self.lambda_scale}")
         if not 0 < self.lr_decay <= 1:
             raise ValueError(f"lr_decay must be in (0, 1], got {self.lr_decay}")
 
