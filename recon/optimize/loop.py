@@ -604,13 +604,13 @@ def _stage_edge_length(stage: StageSettings, settings: OptimizeSettings, views: 
                        bbox_scale: float) -> tuple[float, float]:
     """(edge length, its lower limit) of a stage in world units: the stage's ``edge_length``,
     raised to ``min_edge_pixels`` pixel footprints at the stage's image size."""
-    W, H = views.cameras[0].width, views.cameras[0].height
-    factor = min(1.0, settings.stage_image_size(stage) / max(W, H))
-    h_min = float(settings.min_edge_pixels) * footprint_full / factor
+    longest = max(views.cameras[0].width, views.cameras[0].height)
+    size = min(settings.stage_image_size(stage), longest)  # the photos are never upsampled
+    h_min = float(settings.min_edge_pixels) * footprint_full * longest / size
     h = float(stage.edge_length) * bbox_scale
     if h < h_min:
         log.info("stage edge length %.4g is below %.3g pixel footprints at %d px: using %.4g",
-                 h, settings.min_edge_pixels, settings.stage_image_size(stage), h_min)
+                 h, settings.min_edge_pixels, size, h_min)
     return max(h, h_min), h_min
 
 
