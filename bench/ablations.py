@@ -958,7 +958,10 @@ def _section_gradients(out: Path, M: dict, plots: dict, spread) -> list[str]:
                f"{de['predicted_by_edge']:+.4f}, the Mitsuba route {de['predicted_by_projective']:+.4f}; along the "
                f"Mitsuba route's direction the finite difference is {dp['finite_difference']:+.4f}, ours predicts "
                f"{dp['predicted_by_edge']:+.4f}, it {dp['predicted_by_projective']:+.4f}. ")
-        pj += ("The two estimators agree, so the rows above compare the same gradients at different costs. "
+        pj += (f"The two estimators agree in expectation (the check's gradients are means over {gc['spp']} samples per pixel), "
+               "so the rows above compare the same gradient at different costs and per-step noise: a gap at equal "
+               f"iterations beyond the seed spread comes from the noise of single {BASE_SET['spp']}-spp steps, where "
+               "Mitsuba's estimator spends its samples differently from ours (not measured separately). "
                if agree else "The two estimators still disagree beyond their noise; the rows above measure that. ")
     pj += ("\n\n*History*: until session 4 these rows were invalid. `MitsubaScene` moved its one point light to "
            "each view of a batch and rendered them one by one, while Mitsuba's render op replays the scene in its "
