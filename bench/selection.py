@@ -29,7 +29,7 @@ from recon.io.cameras import load_cameras  # noqa: E402
 from recon.io.images import read_exr  # noqa: E402
 from recon.io.mesh import read_obj  # noqa: E402
 from recon.optimize.material import (  # noqa: E402
-    DIFFUSE_ONLY, MaterialModel, SelectionSettings, _Problem, build_gbuffer, compare, fit_model, select_material)
+    DIFFUSE_ONLY, SelectionSettings, compare, select_on_known_mesh)
 from recon.optimize.remesh import rasterize_atlas  # noqa: E402
 from recon.optimize.views import Views  # noqa: E402
 from recon.synth.capture import SynthSettings, make_capture  # noqa: E402
@@ -66,18 +66,11 @@ def main(argv=None) -> int:
     held = [i for i in range(len(views)) if i % 4 == 2]
     train = views.subset([i for i in range(len(views)) if i % 4 != 2]).at(size)
     heldout = views.subset(held).at(size)
-    T = 256
-    covered = rasterize_atlas(mesh, T)[0] >= 0
-    const = {"diffuse": np.full((T, T, 3), 0.3, np.float32), "specular": np.full((T, T, 1), 0.1, np.float32),
-             "roughness": np.full((T, T, 1), 0.4, np.float32)}
     s = SelectionSettings(iterations=150)
     light, scale = views.light_intensity, views.median_foreground
-    gb = build_gbuffer(mesh, list(train.cameras), args.spp, 0)
-    full = fit_model(MaterialModel(), gb, train, const, covered, light, scale, dataclasses.replace(s, iterations=300),
-                     _Problem(gb, train, s.tone_map, scale))
     evals = []  # every fit in order: controls and candidates
-    fit, ev = select_material(mesh, full.maps, covered, train, heldout, light, scale, s, spp=args.spp,
-                              progress=lambda m, f: evals.append((m, f.tile_errors)))
+    fit, ev = select_on_known_mesh(mesh, train, heldout, light, scale, s, spp=args.spp,
+                                   progress=lambda m, f: evals.append((m, f.tile_errors)))
     out(f"{tag}: {len(train)} training / {len(heldout)} held-out views at {size} px, "
         f"{time.perf_counter() - t0:.0f} s; chosen {ev['chosen']}")
     # pair each candidate with the control it was compared against (see select_material)
@@ -98,6 +91,8 @@ def main(argv=None) -> int:
             f"{'kept' if r['accepted'] else 'rejected'}")
         if r["accepted"]:
             current, control = model, None
+    T = fit.maps["roughness"].shape[0]  # the ground truth maps share the true mesh's atlas
+    covered = rasterize_atlas(mesh, T)[0] >= 0
     for name in ("specular", "roughness"):
         gt = read_exr(cap / "gt" / f"{name}.exr").reshape(T, T)
         rec = fit.maps[name][..., 0]

@@ -454,7 +454,7 @@ def _run_stages(stages, start_stage, start_it, state, init, settings, views, bbo
     footprint_full = pixel_footprint(views.cameras, (lo + hi) / 2)
     for si in range(start_stage, len(stages)):
         stage = stages[si]
-        h, h_min = _stage_edge_length(stage, settings, views, footprint_full, bbox_scale)
+        h, h_req, h_min = _stage_edge_length(stage, settings, views, footprint_full, bbox_scale)
         t0 = time.perf_counter()
         if state is not None and si == start_stage:
             m = state["mesh"]
@@ -477,8 +477,7 @@ def _run_stages(stages, start_stage, start_it, state, init, settings, views, bbo
             log.info("stage %d: %d vertices, %d faces, %dx%d maps, %dx%d images, edge %.4g",
                      si, len(mesh.v_pos), len(mesh.t_pos_idx), stage.texture_size, stage.texture_size,
                      st.targets.cameras[0].width, st.targets.cameras[0].height, h)
-            stage_infos.append({**_stage_info(st), "edge_length_requested": float(stage.edge_length) * bbox_scale,
-                                "edge_length_min": h_min})
+            stage_infos.append({**_stage_info(st), "edge_length_requested": h_req, "edge_length_min": h_min})
             _save(ckpt_dir, fp, st, 0, records, stage_infos, timer, done=False)
         st.executor = executor
         for it in range(it0, int(stage.iterations)):
@@ -601,9 +600,9 @@ def _save(ckpt_dir, fp, st: _Stage, next_it: int, records, stage_infos, timer: _
 
 
 def _stage_edge_length(stage: StageSettings, settings: OptimizeSettings, views: Views, footprint_full: float,
-                       bbox_scale: float) -> tuple[float, float]:
-    """(edge length, its lower limit) of a stage in world units: the stage's ``edge_length``,
-    raised to ``min_edge_pixels`` pixel footprints at the stage's image size."""
+                       bbox_scale: float) -> tuple[float, float, float]:
+    """(edge length, requested length, lower limit) of a stage in world units: the stage's
+    ``edge_length``, raised to ``min_edge_pixels`` pixel footprints at the stage's image size."""
     longest = max(views.cameras[0].width, views.cameras[0].height)
     size = min(settings.stage_image_size(stage), longest)  # the photos are never upsampled
     h_min = float(settings.min_edge_pixels) * footprint_full * longest / size
@@ -611,7 +610,7 @@ def _stage_edge_length(stage: StageSettings, settings: OptimizeSettings, views: 
     if h < h_min:
         log.info("stage edge length %.4g is below %.3g pixel footprints at %d px: using %.4g",
                  h, settings.min_edge_pixels, size, h_min)
-    return max(h, h_min), h_min
+    return max(h, h_min), h, h_min
 
 
 def _stage_info(st: _Stage) -> dict:

@@ -554,3 +554,21 @@ def heldout_error(mesh: Mesh, maps: dict, heldout: ViewSet, light: float, tone_s
     gb = build_gbuffer(mesh, list(heldout.cameras), spp, seed)
     m = model or model_from_settings(maps["specular"].shape[2])
     return tile_errors(maps, m, gb, heldout, light, tone_scale, s)
+
+
+def select_on_known_mesh(mesh: Mesh, train: ViewSet, heldout: ViewSet, light: float, tone_scale: float,
+                         s: SelectionSettings, spp: int = 4, texture_size: int = 256, full_iterations: int = 300,
+                         progress=None) -> tuple[Fit, dict]:
+    """The selection on a given mesh without the main loop (benchmarks and tests of the selection):
+    constant maps (diffuse 0.3, specular 0.1, roughness 0.4), the full model fitted from them for
+    ``full_iterations`` steps as the main loop would leave it, then :func:`select_material`."""
+    from recon.optimize.remesh import rasterize_atlas
+
+    T = int(texture_size)
+    covered = rasterize_atlas(mesh, T)[0] >= 0
+    const = {"diffuse": np.full((T, T, 3), 0.3, np.float32), "specular": np.full((T, T, 1), 0.1, np.float32),
+             "roughness": np.full((T, T, 1), 0.4, np.float32)}
+    gb = build_gbuffer(mesh, list(train.cameras), spp, 0)
+    full = fit_model(MaterialModel(), gb, train, const, covered, light, tone_scale,
+                     dataclasses.replace(s, iterations=int(full_iterations)), _Problem(gb, train, s.tone_map, tone_scale))
+    return select_material(mesh, full.maps, covered, train, heldout, light, tone_scale, s, spp=spp, progress=progress)

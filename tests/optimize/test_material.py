@@ -17,11 +17,8 @@ from recon.optimize.material import (
     GBuffer,
     MaterialModel,
     SelectionSettings,
-    _Problem,
-    build_gbuffer,
     compare,
-    fit_model,
-    select_material,
+    select_on_known_mesh,
     selection_steps,
     shade,
 )
@@ -135,16 +132,8 @@ def _problem(cap, size=128):
 def _select(cap, size=128, spp=4):
     """Fit the full model on the true mesh (as the main loop would), then select."""
     mesh, views, train, held = _problem(cap, size)
-    T = 256
-    covered = rasterize_atlas(mesh, T)[0] >= 0
-    const = {"diffuse": np.full((T, T, 3), 0.3, np.float32), "specular": np.full((T, T, 1), 0.1, np.float32),
-             "roughness": np.full((T, T, 1), 0.4, np.float32)}
-    s = SelectionSettings(iterations=150)
     light, scale = views.light_intensity, views.median_foreground
-    gb = build_gbuffer(mesh, list(train.cameras), spp, 0)
-    full = fit_model(MaterialModel(), gb, train, const, covered, light, scale, dataclasses.replace(s, iterations=300),
-                     _Problem(gb, train, s.tone_map, scale))
-    fit, evidence = select_material(mesh, full.maps, covered, train, held, light, scale, s, spp=spp)
+    fit, evidence = select_on_known_mesh(mesh, train, held, light, scale, SelectionSettings(iterations=150), spp=spp)
     for m in fit.maps.values():
         assert np.all(np.isfinite(m))
     return fit, evidence
