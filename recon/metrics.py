@@ -153,7 +153,8 @@ def pose_errors(est: CameraSet, true: CameraSet, similarity: Similarity | None =
     }
 
 
-def _distance_to(mesh: Mesh, points: np.ndarray) -> np.ndarray:
+def distance_to_mesh(mesh: Mesh, points: np.ndarray) -> np.ndarray:
+    """(N,) unsigned distance of each point ``(N, 3)`` to the closest point of the mesh's surface."""
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
@@ -198,8 +199,8 @@ def chamfer(
     rng = np.random.default_rng(seed)
     p_rec = rec.sample_surface(n_samples, rng)
     p_gt = ground_truth.sample_surface(n_samples, rng)
-    acc = float(_distance_to(ground_truth, p_rec).mean() / unit)
-    comp = float(_distance_to(rec, p_gt).mean() / unit)
+    acc = float(distance_to_mesh(ground_truth, p_rec).mean() / unit)
+    comp = float(distance_to_mesh(rec, p_gt).mean() / unit)
     return {"accuracy": acc, "completeness": comp, "chamfer": 0.5 * (acc + comp), "unit": unit}
 
 
