@@ -78,7 +78,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.io.atomic import atomic_dir
-from recon.io.images import ImageError, linear_to_srgb, read_exr, write_png
+from recon.io.images import ImageError, linear_to_srgb, read_texture_map, write_png
 from recon.io.mesh import Mesh, MeshError, read_obj
 
 log = logging.getLogger(__name__)
@@ -109,9 +109,6 @@ F0_IOR_1_5 = ((1.5 - 1.0) / (1.5 + 1.0)) ** 2
 
 SPECULAR_COLOR_FACTOR = 1.0 / F0_IOR_1_5
 """glTF ``specularColorFactor`` (each channel): F0 = 0.04 * 25 * a_s = a_s."""
-
-_RANGE_TOL = 1e-6
-
 
 class ExportError(ValueError):
     """Inputs that cannot be exported; the message names the file and the fix."""
@@ -169,30 +166,9 @@ class Material:
 # ---- Inputs ----
 def _read_map(path: Path, what: str, channels: tuple[int, ...]) -> np.ndarray:
     try:
-        a = read_exr(path)
+        return read_texture_map(path, what, channels)
     except ImageError as e:
-        raise ExportError(f"{e}; the export needs the optimize stage's {what} map") from e
-    if a.shape[2] not in channels:
-        want = " or ".join(str(c) for c in channels)
-        raise ExportError(
-            f"{path}: the {what} map has {a.shape[2]} channel(s), expected {want} "
-            "(DESIGN section 2: diffuse.exr RGB, specular.exr 1 channel or RGB, "
-            "roughness.exr 1 channel)"
-        )
-    if a.shape[0] < 1 or a.shape[1] < 1:
-        raise ExportError(f"{path}: the {what} map is empty ({a.shape})")
-    bad = ~np.isfinite(a)
-    if bad.any():
-        raise ExportError(
-            f"{path}: the {what} map has {int(bad.any(axis=2).sum())} texel(s) with NaN or Inf; "
-            "fix the optimization output (or fill them) before exporting"
-        )
-    lo, hi = float(a.min()), float(a.max())
-    if lo < -_RANGE_TOL or hi > 1.0 + _RANGE_TOL:
-        n = int(((a < -_RANGE_TOL) | (a > 1.0 + _RANGE_TOL)).any(axis=2).sum())
-        log.warning("%s: %d texel(s) of the %s map outside [0, 1] (range %.4g..%.4g); clipped",
-                    path, n, what, lo, hi)
-    return np.clip(a, 0.0, 1.0).astype(np.float32)
+        raise ExportError(f"{e} (the export reads the optimize stage's {what} map)") from e
 
 
 def load_material(diffuse_exr, specular_exr, roughness_exr) -> Material:

@@ -7,12 +7,15 @@ change only here, at file boundaries: names say which one an array is in
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
 import numpy as np
 
 from recon.io.atomic import atomic_path
+
+log = logging.getLogger(__name__)
 
 RAW_EXTENSIONS = (".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".rw2", ".orf", ".pef", ".srw")
 LDR_EXTENSIONS = (".jpg", ".jpeg", ".png")
@@ -90,6 +93,33 @@ def read_exr(path: str | os.PathLike) -> np.ndarray:
     else:
         raise ImageError(f"{path}: unsupported EXR channels {names}; expected R,G,B[,A] or Y")
     return np.stack([ch[c].astype(np.float32) for c in order], axis=-1)
+
+
+def read_texture_map(path: str | os.PathLike, what: str, channels: tuple[int, ...],
+                     tolerance: float = 1e-6) -> np.ndarray:
+    """Read one material texture map (DESIGN section 2) as float32 ``(H, W, C)`` in [0, 1].
+
+    Raises :class:`ImageError` naming ``path`` when the file is missing or unreadable, has a channel
+    count not in ``channels``, is empty, or holds NaN/Inf texels. Values outside [0, 1] by more than
+    ``tolerance`` are clipped with a warning (a map is a reflectance, never outside that range).
+    """
+    path = Path(path)
+    a = read_exr(path)
+    if a.shape[2] not in channels:
+        want = " or ".join(str(c) for c in channels)
+        raise ImageError(f"{path}: the {what} map has {a.shape[2]} channel(s), expected {want} (DESIGN section 2: "
+                         "diffuse RGB, specular 1 channel or RGB, roughness 1 channel)")
+    if a.shape[0] < 1 or a.shape[1] < 1:
+        raise ImageError(f"{path}: the {what} map is empty ({a.shape})")
+    bad = ~np.isfinite(a)
+    if bad.any():
+        raise ImageError(f"{path}: the {what} map has {int(bad.any(axis=2).sum())} texel(s) with NaN or Inf; "
+                         "rerun the stage that wrote it")
+    lo, hi = float(a.min()), float(a.max())
+    if lo < -tolerance or hi > 1.0 + tolerance:
+        n = int(((a < -tolerance) | (a > 1.0 + tolerance)).any(axis=2).sum())
+        log.warning("%s: %d texel(s) of the %s map outside [0, 1] (range %.4g..%.4g); clipped", path, n, what, lo, hi)
+    return np.clip(a, 0.0, 1.0).astype(np.float32)
 
 
 # ---- 8/16-bit PNG and JPEG ----

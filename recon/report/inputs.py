@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.io.images import ImageError, read_exr
+from recon.io.images import ImageError, read_texture_map
 from recon.io.mesh import Mesh, MeshError, read_mesh
 
 log = logging.getLogger(__name__)
@@ -89,21 +89,12 @@ def _require(path: Path, what: str, producer: str) -> Path:
 
 
 def read_map(path: str | os.PathLike, what: str, channels: tuple[int, ...], producer: str) -> np.ndarray:
-    """Read one texture map EXR, check channels and finiteness, clip to [0, 1]."""
+    """Read one texture map EXR (:func:`recon.io.images.read_texture_map`: channels, finiteness, [0, 1])."""
     path = _require(Path(path), f"the {what} map", producer)
     try:
-        a = read_exr(path)
+        return read_texture_map(path, what, channels)
     except ImageError as e:
         raise ReportError(f"{e} ({producer})") from e
-    if a.shape[2] not in channels:
-        want = " or ".join(str(c) for c in channels)
-        raise ReportError(f"{path}: the {what} map has {a.shape[2]} channel(s), expected {want} (DESIGN section 2)")
-    if not np.all(np.isfinite(a)):
-        raise ReportError(f"{path}: the {what} map contains NaN or Inf; rerun the stage that wrote it")
-    lo, hi = float(a.min()), float(a.max())
-    if lo < -1e-6 or hi > 1 + 1e-6:
-        log.warning("%s: values %.4g..%.4g outside [0, 1], clipped", path, lo, hi)
-    return np.clip(a, 0.0, 1.0).astype(np.float32)
 
 
 def read_textured_mesh(path: str | os.PathLike, producer: str) -> Mesh:

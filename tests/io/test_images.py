@@ -41,3 +41,24 @@ def test_png_16bit_and_mask_round_trip(tmp_path):
     m[1:3, 2:5] = True
     im.write_mask(tmp_path / "m.png", m)
     np.testing.assert_array_equal(im.read_mask(tmp_path / "m.png"), m)
+
+
+def test_texture_map_checks_and_clips(tmp_path, caplog):
+    p = tmp_path / "roughness.exr"
+    a = np.full((4, 5, 1), 0.5, np.float32)
+    a[0, 0] = 1.25
+    a[1, 1] = -0.5
+    im.write_exr(p, a)
+    with caplog.at_level("WARNING"):
+        out = im.read_texture_map(p, "roughness", (1,))
+    assert out.dtype == np.float32 and out.shape == (4, 5, 1)
+    assert out[0, 0, 0] == 1.0 and out[1, 1, 0] == 0.0 and out[2, 2, 0] == 0.5
+    assert "2 texel(s) of the roughness map outside [0, 1]" in caplog.text
+    with pytest.raises(im.ImageError, match=r"roughness\.exr: the specular map has 1 channel\(s\), expected 3"):
+        im.read_texture_map(p, "specular", (3,))
+    a[2, 3] = np.nan
+    im.write_exr(p, a)
+    with pytest.raises(im.ImageError, match=r"roughness\.exr: the roughness map has 1 texel\(s\) with NaN or Inf"):
+        im.read_texture_map(p, "roughness", (1,))
+    with pytest.raises(im.ImageError, match=r"absent\.exr: file not found"):
+        im.read_texture_map(tmp_path / "absent.exr", "diffuse", (3,))
