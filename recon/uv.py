@@ -81,6 +81,93 @@ def drop_small_components(mesh: Mesh, min_faces: int, min_area_fraction: float) 
     return Mesh(mesh.v_pos[used], remap[f]), dropped
 
 
+def pack_atlas(v_pos: np.ndarray, t_pos_idx: np.ndarray, texture_size: int, padding: int, *,
+               fill: float | None = None, max_attempts: int = 6) -> tuple[np.ndarray, np.ndarray, dict]:
+    """xatlas charts of a mesh packed into one ``texture_size`` x ``texture_size`` map.
+
+    The one place the project calls xatlas (the uv stage, coarse-to-fine remeshing and the
+    synthetic captures' bake all come here). Positions and faces are not changed.
+
+    Parameters
+    ----------
+    v_pos, t_pos_idx : (V, 3) positions and (F, 3) faces; finite, non-empty bounding box.
+    texture_size : the map's side T in texels.
+    padding : empty texels between charts, in texels of the T map.
+    fill : fraction of the map the charts should cover at the first attempt (sets xatlas's texel
+        density from the surface area); None lets xatlas choose from ``texture_size``.
+    max_attempts : packings tried; after an atlas larger than T or on more than one page (its
+        UVs would overlap the first), the texel density is lowered and the charts packed again.
+
+    Returns
+    -------
+    v_tex : (T', 2) UVs, OBJ convention (v up): atlas texel (row i, column j) is at
+        u = (j + 0.5)/T, v = 1 - (i + 0.5)/T; the atlas sits in the map's top-left corner.
+    t_tex_idx : (F, 3) UV indices per face (vertices split at seams).
+    stats : ``charts``, ``utilization``, ``atlas_width``/``atlas_height`` (texels used),
+        ``texels_per_unit`` (per unit of the mesh's frame), ``attempts``.
+    """
+    import xatlas
+
+    T = int(texture_size)
+    v64 = np.asarray(v_pos, dtype=np.float64)
+    f = np.asarray(t_pos_idx, dtype=np.int64)
+    if len(f) == 0:
+        raise UVError("the mesh has no faces")
+    if not np.all(np.isfinite(v64)):
+        raise UVError("the mesh has NaN or Inf vertex positions")
+    # xatlas works in float32 with absolute epsilons (faces below ~1e-7 in area count as
+    # degenerate): unwrap a copy scaled to a unit bounding box, so the atlas does not depend
+    # on the scene's units (a 1 mm object unwraps like a 1 m one)
+    lo, hi = v64.min(0), v64.max(0)
+    extent = float(np.max(hi - lo))
+    if not extent > 0:
+        raise UVError("the mesh has an empty bounding box (all vertices at one point)")
+    v_unit = (v64 - 0.5 * (lo + hi)) / extent
+    v32 = v_unit.astype(np.float32)
+    f32 = f.astype(np.uint32)
+    tpu = 0.0  # 0: xatlas chooses from the resolution
+    if fill is not None:
+        p = v_unit[f]
+        area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
+        tpu = float(np.sqrt(fill * T * T / area)) if area > 0 else 0.0
+    for attempt in range(1, int(max_attempts) + 1):  # noqa: B007 (reported below)
+        atlas = xatlas.Atlas()
+        atlas.add_mesh(v32, f32)
+        pack = xatlas.PackOptions()
+        pack.resolution = T
+        pack.padding = int(padding)
+        pack.bilinear = True
+        if tpu > 0:
+            pack.texels_per_unit = tpu
+        atlas.generate(xatlas.ChartOptions(), pack)
+        w, h = int(atlas.width), int(atlas.height)
+        # one page only: with texels_per_unit set, xatlas may spill charts onto a second page
+        if max(w, h) <= T and atlas.atlas_count == 1:
+            break
+        shrink = T / max(w, h) if max(w, h) > T else 1.0
+        tpu = float(atlas.texels_per_unit) * shrink * (0.97 if atlas.atlas_count == 1 else 0.85)
+        log.debug("atlas %dx%d on %d page(s) does not fit one %d-texel page: packing again at %.2f "
+                  "texels per unit", w, h, atlas.atlas_count, T, tpu)
+    else:
+        raise UVError(f"xatlas could not fit the charts into {T}x{T} texels in {max_attempts} attempts; "
+                      "raise texture_size or lower padding")
+    vmapping, indices, uv_norm = atlas[0]
+    indices = np.asarray(indices, dtype=np.int64)
+    if indices.shape != f.shape or not np.array_equal(np.asarray(vmapping, dtype=np.int64)[indices], f):
+        raise UVError("xatlas reordered the faces; cannot map the UVs back to the mesh")
+    texel = np.asarray(uv_norm, dtype=np.float64) * np.array([w, h])  # atlas texels (x right, y down)
+    v_tex = np.stack([texel[:, 0] / T, 1.0 - texel[:, 1] / T], axis=1)
+    stats = {
+        "charts": int(atlas.chart_count),
+        "utilization": float(atlas.utilization),
+        "atlas_width": w,
+        "atlas_height": h,
+        "texels_per_unit": float(atlas.texels_per_unit) / extent,  # per unit of the mesh's frame
+        "attempts": attempt,
+    }
+    return v_tex, indices, stats
+
+
 def unwrap(mesh: Mesh, settings: UVSettings = UVSettings()) -> tuple[Mesh, dict]:
     """UV-unwrap ``mesh`` (positions unchanged, UVs split at seams).
 
@@ -91,8 +178,6 @@ def unwrap(mesh: Mesh, settings: UVSettings = UVSettings()) -> tuple[Mesh, dict]
     stats : dict with ``charts``, ``utilization``, ``atlas_width``/``atlas_height`` (texels
         used in the map), ``texels_per_unit``, ``dropped_components``, ``attempts``.
     """
-    import xatlas
-
     if len(mesh.t_pos_idx) == 0:
         raise UVError("the mesh has no faces")
     if not np.all(np.isfinite(mesh.v_pos)):
@@ -100,56 +185,16 @@ def unwrap(mesh: Mesh, settings: UVSettings = UVSettings()) -> tuple[Mesh, dict]
     mesh, dropped = drop_small_components(mesh, settings.min_component_faces, settings.min_component_area)
     if dropped:
         log.info("dropped %d small component(s) before unwrapping", dropped)
-    T = settings.texture_size
-    # xatlas works in float32 with absolute epsilons (faces below ~1e-7 in area count as
-    # degenerate): unwrap a copy scaled to a unit bounding box, so the atlas does not depend
-    # on the scene's units (a 1 mm object unwraps like a 1 m one)
-    lo, hi = mesh.bbox()
-    extent = float(np.max(hi - lo))
-    if not extent > 0:
-        raise UVError("the mesh has an empty bounding box (all vertices at one point)")
-    v32 = ((mesh.v_pos - 0.5 * (lo + hi)) / extent).astype(np.float32)
-    f32 = mesh.t_pos_idx.astype(np.uint32)
-    tpu = 0.0  # let xatlas choose from the resolution first
-    for attempt in range(1, settings.max_pack_attempts + 1):  # noqa: B007 (reported below)
-        atlas = xatlas.Atlas()
-        atlas.add_mesh(v32, f32)
-        pack = xatlas.PackOptions()
-        pack.resolution = T
-        pack.padding = settings.padding
-        pack.bilinear = True
-        if tpu > 0:
-            pack.texels_per_unit = tpu
-        atlas.generate(xatlas.ChartOptions(), pack)
-        w, h = int(atlas.width), int(atlas.height)
-        # One page only: with texels_per_unit set, xatlas may spill charts onto a second
-        # page whose UVs overlap the first.
-        if max(w, h) <= T and atlas.atlas_count == 1:
-            break
-        shrink = T / max(w, h) if max(w, h) > T else 1.0
-        tpu = float(atlas.texels_per_unit) * shrink * (0.97 if atlas.atlas_count == 1 else 0.85)
-        log.info("atlas %dx%d on %d page(s) does not fit one %d-texel page: packing again at %.2f "
-                 "texels per unit", w, h, atlas.atlas_count, T, tpu)
-    else:
-        raise UVError(f"xatlas could not fit the charts into {T}x{T} texels in {settings.max_pack_attempts} "
-                      "attempts; raise texture_size or lower padding")
-    vmapping, indices, uv_norm = atlas[0]
-    t_pos = vmapping.astype(np.int64)[indices.astype(np.int64)]
-    if t_pos.shape != mesh.t_pos_idx.shape or not np.array_equal(t_pos, mesh.t_pos_idx):
-        raise UVError("xatlas reordered the faces; cannot map the UVs back to the mesh")
-    texel = uv_norm.astype(np.float64) * np.array([w, h])  # atlas texel coordinates (x right, y down)
-    v_tex = np.stack([texel[:, 0] / T, 1.0 - texel[:, 1] / T], axis=1)
-    out = Mesh(mesh.v_pos, mesh.t_pos_idx, v_tex, indices.astype(np.int64))
+    v_tex, t_tex_idx, pack = pack_atlas(mesh.v_pos, mesh.t_pos_idx, settings.texture_size, settings.padding,
+                                        max_attempts=settings.max_pack_attempts)
+    if pack["attempts"] > 1:
+        log.info("atlas packed in %d attempts at %.2f texels per unit", pack["attempts"], pack["texels_per_unit"])
+    out = Mesh(mesh.v_pos, mesh.t_pos_idx, v_tex, t_tex_idx)
     stats = {
-        "charts": int(atlas.chart_count),
-        "utilization": float(atlas.utilization),
-        "atlas_width": w,
-        "atlas_height": h,
-        "texture_size": T,
+        **pack,
+        "texture_size": settings.texture_size,
         "padding": settings.padding,
-        "texels_per_unit": float(atlas.texels_per_unit) / extent,  # per unit of the mesh's frame
         "dropped_components": dropped,
-        "attempts": attempt,
         "faces": int(len(out.t_pos_idx)),
         "uv_vertices": int(len(v_tex)),
     }

@@ -21,6 +21,7 @@ import logging
 import numpy as np
 
 from recon.io.mesh import Mesh
+from recon.uv import UVError, pack_atlas
 
 log = logging.getLogger(__name__)
 
@@ -70,50 +71,16 @@ def unwrap(v_pos: np.ndarray, t_pos_idx: np.ndarray, texture_size: int, padding:
            max_attempts: int = 12) -> Mesh:
     """The mesh with an xatlas atlas that fits one ``texture_size`` x ``texture_size`` map.
 
-    ``padding`` empty texels separate the charts in the map itself: when xatlas's atlas comes
-    out larger than the map, or spills onto a second page (overlapping UVs), it is packed again
-    at fewer texels per unit. Faces keep their order (checked).
+    :func:`recon.uv.pack_atlas` with ``padding`` empty texels between charts in the map itself,
+    the first packing aimed at charts filling half the map (one xatlas run, ~4 s per 30k faces,
+    is the cost, so the first attempt should fit). Faces keep their order (checked).
     """
-    import xatlas
-
-    T = int(texture_size)
-    # xatlas's degeneracy thresholds are absolute (float32): unwrap a copy scaled to a unit
-    # bounding box, so the atlas is the same in any units (a 1e-3 scene would not pack)
-    v64 = np.asarray(v_pos, dtype=np.float64)
-    lo = v64.min(0) if len(v64) else np.zeros(3)
-    ext = float(np.max(v64.max(0) - lo)) if len(v64) else 0.0
-    v_unit = (v64 - lo) / ext if ext > 0 else v64
-    v32 = v_unit.astype(np.float32)
-    f32 = np.asarray(t_pos_idx, dtype=np.uint32)
-    # texels per unit length so that the charts fill about half the map (one xatlas run at
-    # ~4 s per 30k faces is the cost, so aim to fit at the first attempt)
-    p = v_unit[np.asarray(t_pos_idx)]
-    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
-    tpu = float(np.sqrt(0.5 * T * T / area)) if area > 0 else 0.0
-    for _ in range(int(max_attempts)):
-        atlas = xatlas.Atlas()
-        atlas.add_mesh(v32, f32)
-        pack = xatlas.PackOptions()
-        pack.resolution = T
-        pack.padding = int(padding)
-        pack.bilinear = True
-        if tpu > 0:
-            pack.texels_per_unit = tpu
-        atlas.generate(xatlas.ChartOptions(), pack)
-        w, h = int(atlas.width), int(atlas.height)
-        if atlas.atlas_count == 1 and max(w, h) <= T:
-            break
-        shrink = min(0.97, T / max(w, h) * 0.97) if max(w, h) > T else 0.9
-        tpu = float(atlas.texels_per_unit) * shrink
-    else:
-        raise RemeshError(f"xatlas could not pack the charts into one {T}x{T} map; use a larger texture_size")
-    vmapping, indices, uvs = atlas[0]
-    if indices.shape != np.shape(t_pos_idx) or not np.array_equal(np.asarray(vmapping)[indices], t_pos_idx):
-        raise RemeshError("xatlas changed the face order or connectivity; cannot pair UVs with faces")
-    # xatlas's uvs are normalized to its w x h atlas (y down); the map is T x T with v up
-    texel = np.asarray(uvs, dtype=np.float64) * np.array([w, h])
-    v_tex = np.stack([texel[:, 0] / T, 1.0 - texel[:, 1] / T], axis=1)
-    return Mesh(v_pos, t_pos_idx, v_tex, np.asarray(indices, dtype=np.int64))
+    try:
+        v_tex, t_tex_idx, _ = pack_atlas(v_pos, t_pos_idx, texture_size, padding, fill=0.5,
+                                         max_attempts=max_attempts)
+    except UVError as e:
+        raise RemeshError(f"{e} (re-unwrapping the remeshed surface)") from e
+    return Mesh(v_pos, t_pos_idx, v_tex, t_tex_idx)
 
 
 def texel_centers_uv(size: int) -> np.ndarray:

@@ -30,6 +30,9 @@ def unwrap(mesh: Mesh, resolution: int = 1024, padding: int = 3) -> Mesh:
     padding : int
         Gap between charts, in texels at ``resolution``.
     """
+    # xatlas is called here directly, not through recon.uv.pack_atlas: this layout (xatlas's own
+    # normalized UVs stretched over the map) made the bundled captures/demo, which must regenerate
+    # bit-identically (tests/synth/test_demo_capture.py); the ground truth needs no packing retries
     import xatlas
 
     atlas = xatlas.Atlas()
