@@ -65,7 +65,7 @@ BASE_SET = {
 # plateau, the pixel-footprint limit on stage edge lengths; the presets turn them on). Off = the
 # behaviour every run here had before they existed, so they are pinned off where the settings
 # know them and ignored when comparing the commands of earlier runs.
-NEUTRAL_PINS = {"select_material": False, "stop_on_plateau": False, "min_edge_pixels": 0}
+NEUTRAL_PINS = {"select_material": False, "stop_on_plateau": False, "min_edge_pixels": 0, "largesteps_reference_edge": 0}
 PRESET = "draft"
 CRUDE = 0.04  # target accuracy of the shared crude initial mesh
 CRUDE_HARD = 0.09  # the paper's cruder end (maneki: 0.0878)

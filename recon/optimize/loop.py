@@ -135,8 +135,7 @@ def _build_stage(index, stage_settings, h, mesh, v_init, covered, map_values, se
     topo = reg.MeshTopology.from_faces(mesh.t_pos_idx, len(mesh.v_pos))
     ls = None
     if settings.optimizer == "largesteps":
-        ls = LargeSteps(mesh.t_pos_idx, len(mesh.v_pos),
-                        settings.largesteps_lambda * float(stage_settings.lambda_scale))
+        ls = LargeSteps(mesh.t_pos_idx, len(mesh.v_pos), stage_lambda(settings, stage_settings, h / bbox_scale))
         geom0 = torch.from_numpy(ls.M @ mesh.v_pos)
     else:
         geom0 = torch.from_numpy(mesh.v_pos.copy())
@@ -597,6 +596,17 @@ def _save(ckpt_dir, fp, st: _Stage, next_it: int, records, stage_infos, timer: _
                  done=done)
     ckpt.save(ckpt_dir, state)
     timer.add("setup", time.perf_counter() - t0)
+
+
+def stage_lambda(settings: OptimizeSettings, stage: StageSettings, edge_length: float) -> float:
+    """The large-steps lambda of a stage whose edges are ``edge_length`` (fraction of the bbox):
+    ``largesteps_lambda * lambda_scale``, times ``(largesteps_reference_edge / edge_length)^2`` when
+    the edges are shorter than the reference (the smoothing length on the surface stays fixed)."""
+    lam = float(settings.largesteps_lambda) * float(stage.lambda_scale)
+    ref = float(settings.largesteps_reference_edge)
+    if ref > 0 and edge_length < ref:
+        lam *= (ref / edge_length) ** 2
+    return lam
 
 
 def _stage_edge_length(stage: StageSettings, settings: OptimizeSettings, views: Views, footprint_full: float,

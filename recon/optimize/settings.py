@@ -30,9 +30,8 @@ class StageSettings:
     lr_scale : multiplies every learning rate in this stage (finer stages often take smaller steps).
     lr_decay : the learning rates fall exponentially within the stage, to ``lr_decay`` times their
         start at its last iteration (1 = constant).
-    lambda_scale : multiplies ``largesteps_lambda`` in this stage. The preconditioner smooths over
-        about sqrt(lambda) edges, so on a mesh with edges k times shorter ``lambda_scale = k**2``
-        keeps its smoothing length on the surface.
+    lambda_scale : multiplies ``largesteps_lambda`` in this stage, on top of the automatic
+        ``(largesteps_reference_edge / edge_length)^2`` of stages finer than the reference.
     """
 
     edge_length: float = 0.02
@@ -92,6 +91,10 @@ class OptimizeSettings:
     u = (I + lambda L) v, L the combinatorial Laplacian, and Adam on u) or "adam" (the paper:
     plain Adam on v with the Laplacian regularizer); ``lr_geometry`` (relative to the bbox's
     longest side), ``lr_texture`` (in parameter units), ``largesteps_lambda``,
+    ``largesteps_reference_edge`` (fraction of the bbox; a stage whose edges h are shorter than
+    it multiplies lambda by (reference / h)^2: the preconditioner smooths over about sqrt(lambda)
+    edges, so this keeps its smoothing length on the surface as the mesh is refined; 0 = the
+    same lambda in every stage),
     ``largesteps_uniform_adam`` (Nicolet's AdamUniform for u instead of Adam), ``betas``.
 
     Loss (the paper's eq. 6 and sec. 3.3; each term normalized as documented in
@@ -137,6 +140,7 @@ class OptimizeSettings:
     lr_geometry: float = 0.005
     lr_texture: float = 0.03
     largesteps_lambda: float = 2.0
+    largesteps_reference_edge: float = 0.025
     largesteps_uniform_adam: bool = False
     betas: tuple = (0.9, 0.999)
     w_render: float = 1.0
@@ -194,6 +198,9 @@ class OptimizeSettings:
         for name in ("resolution", "spp", "views_per_iteration", "checkpoint_every", "select_image_size", "select_spp"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not (0 <= self.largesteps_reference_edge < 1):
+            raise ValueError(f"largesteps_reference_edge must be in [0, 1) (fraction of the bbox; 0 = off), "
+                             f"got {self.largesteps_reference_edge}")
         if not self.min_edge_pixels >= 0:
             raise ValueError(f"min_edge_pixels must be >= 0, got {self.min_edge_pixels}")
         if int(self.texture_levels) < 1:

@@ -174,6 +174,8 @@ def test_settings_from_preset_dict():
         StageSettings(lr_decay=0.0)
     with pytest.raises(ValueError, match="lambda_scale"):
         StageSettings(lambda_scale=0.0)
+    with pytest.raises(ValueError, match="largesteps_reference_edge"):
+        OptimizeSettings(largesteps_reference_edge=-0.1)
 
 
 def test_from_dirs_pairs_views_masks_and_clipped_pixels(capture, tmp_path):
@@ -248,7 +250,8 @@ def test_guard_under_large_steps_is_deterministic_and_clean(capture, tmp_path):
 def test_stages_never_remesh_finer_than_the_pixels(capture, tmp_path):
     """``min_edge_pixels``: a stage whose edge length is below that many pixel footprints (at its
     image size) is remeshed at the limit instead; 0 keeps the requested lengths. A stage's
-    ``lambda_scale`` multiplies the large-steps lambda."""
+    ``lambda_scale`` multiplies the large-steps lambda, and so does (reference / edge)^2 on stages
+    finer than ``largesteps_reference_edge``."""
     from recon.io.cameras import load_cameras
     from recon.optimize.views import pixel_footprint
 
@@ -256,10 +259,12 @@ def test_stages_never_remesh_finer_than_the_pixels(capture, tmp_path):
     images, masks, sats, cams, init = _inputs(root)
     stages = (StageSettings(0.12, 32, 1, image_size=16), StageSettings(0.06, 32, 1, lambda_scale=4.0))
     free = optimize_capture(images, masks, sats, cams, init, tmp_path / "free",
-                            OptimizeSettings(**{**TINY.__dict__, "stages": stages, "min_edge_pixels": 0.0}),
+                            OptimizeSettings(**{**TINY.__dict__, "stages": stages, "min_edge_pixels": 0.0,
+                                                "largesteps_reference_edge": 0.1}),
                             progress=False)
     capped = optimize_capture(images, masks, sats, cams, init, tmp_path / "capped",
-                              OptimizeSettings(**{**TINY.__dict__, "stages": stages, "min_edge_pixels": 3.0}),
+                              OptimizeSettings(**{**TINY.__dict__, "stages": stages, "min_edge_pixels": 3.0,
+                                                  "largesteps_reference_edge": 0.0}),
                               progress=False)
     m = read_mesh(init)
     lo, hi = m.bbox()
@@ -272,6 +277,9 @@ def test_stages_never_remesh_finer_than_the_pixels(capture, tmp_path):
         assert b["edge_length_min"] == pytest.approx(3.0 * full * 32 / size, rel=1e-6)
         assert b["edge_length"] == pytest.approx(max(rel * scale, b["edge_length_min"]))
     assert [st["largesteps_lambda"] for st in capped["stages"]] == [TINY.largesteps_lambda, 4 * TINY.largesteps_lambda]
+    # the reference edge (0.1 of the bbox) leaves the 0.12 stage alone and scales the 0.06 one
+    assert [st["largesteps_lambda"] for st in free["stages"]] == pytest.approx(
+        [TINY.largesteps_lambda, 4 * TINY.largesteps_lambda * (0.1 / 0.06) ** 2])
     # the second stage (32 px) asks for less than 3 pixels and is held at the limit: fewer faces
     assert capped["stages"][1]["edge_length"] > 0.06 * scale
     assert capped["stages"][1]["faces"] < free["stages"][1]["faces"]
