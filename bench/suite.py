@@ -8,7 +8,8 @@ skipped, so the suite resumes where it stopped), and writes the report:
     .venv/bin/python bench/suite.py --out bench/out/suite --report-only     (docs from bench.json files)
     .venv/bin/python bench/suite.py --out bench/out/suite --quick           (tiny captures, draft only)
 
-Objects (``python -m recon synth``, 40 views, 256 x 192, EXR, known cameras and masks, sensor
+Objects (``python -m recon synth``, 40 views, 512 x 384 (every preset downsamples to its own
+resolution: draft 128, balanced 256, accurate 512 px), EXR, known cameras and masks, sensor
 noise on; the initial mesh is the visual hull that ``bench/optimize.py`` makes):
 
 - ``smooth-diffuse``: ``--object smooth --specular 0``, smooth genus 0, purely diffuse;
@@ -47,7 +48,7 @@ OBJECTS = {
     "blob-glossy": ["--object", "blob"],
     "torus": ["--object", "torus"],
 }
-CAPTURE = ["--views", "40", "--res", "256", "--height", "192", "--format", "exr", "--cameras", "--masks"]
+CAPTURE = ["--views", "40", "--res", "512", "--height", "384", "--format", "exr", "--cameras", "--masks"]
 PRESETS = ["draft", "balanced", "accurate"]
 
 # --quick: tiny captures and a short optimization, to check the whole path in a few minutes
