@@ -62,7 +62,8 @@ BASE_SET = {
     "w_edge": 0.01,
 }
 # Switches added to the optimize stage during this study (held-out material selection, stop on
-# plateau, the pixel-footprint limit on stage edge lengths; the presets turn them on). Off = the
+# plateau, the pixel-footprint limit on stage edge lengths, the large-steps lambda scaled on
+# stages finer than a reference edge; the presets turn them on). Off = the
 # behaviour every run here had before they existed, so they are pinned off where the settings
 # know them and ignored when comparing the commands of earlier runs.
 NEUTRAL_PINS = {"select_material": False, "stop_on_plateau": False, "min_edge_pixels": 0, "largesteps_reference_edge": 0}
@@ -747,9 +748,11 @@ def report_text(out: Path, M: dict, plots: dict, run_seconds: float, synth_secon
     w(f"- **Base configuration** (every run; a row changes only what it names): preset `{PRESET}` with these keys "
       "pinned by `--set` so that a later preset edit cannot move them: "
       + ", ".join(f"`{k}={v}`" for k, v in BASE_SET.items())
-      + f", stages: [{base_stages}] (200 iterations in all); `select_material` and `stop_on_plateau` (added to "
-      "the optimize stage and switched on in the draft preset while this study ran) pinned off, as every run "
-      "here had them; everything else the defaults of "
+      + f", stages: [{base_stages}] (200 iterations in all); "
+      + ", ".join(f"`{k}={str(v).lower()}`" for k, v in NEUTRAL_PINS.items())
+      + " (switches added to the optimize stage and turned on in the presets while this study ran) pinned off, "
+      "as every run here had them (the last one changes nothing at these stages' edge lengths, all >= 0.03); everything else "
+      "the defaults of "
       "`recon/optimize/settings.py` (loss weights w_laplacian 0.1, w_normal 0.01, w_specular 0.01, w_roughness "
       "0.001; every term a mean, lengths divided by the stage's edge length; `w_edge` 0.01 as the presets set it, "
       "not the paper's 1).")
