@@ -7,6 +7,12 @@ e.g. ``python bench/error_profile.py bench/out/suite/captures/smooth-diffuse/gt/
 bench/out/suite/runs/smooth-diffuse/*/optimize/mesh.obj``. Distances are divided by the longest side
 of the ground truth's bounding box, as in ``recon.metrics.chamfer`` (100,000 area-uniform samples
 of each reconstruction, seed 0).
+
+``--cameras CAPTURE/cameras.json`` adds the same numbers per coverage class: the samples are
+binned by how many of the capture's cameras face the true surface at their closest point
+(cosine between the true normal and the direction to the camera > 0.2; occlusion ignored, so
+this is an upper bound on the views that see a point). Where few views see the surface only the
+priors hold it, and that is where a regularization change shows first.
 """
 
 from __future__ import annotations
@@ -28,6 +34,8 @@ def main(argv=None) -> int:
     p.add_argument("ground_truth")
     p.add_argument("meshes", nargs="+")
     p.add_argument("--samples", type=int, default=100_000)
+    p.add_argument("--cameras", help="the capture's cameras.json: also bin the errors by views facing the surface")
+    p.add_argument("--bins", default="0,8,16", help="lower edges of the view-count bins (with --cameras)")
     args = p.parse_args(argv)
     import open3d as o3d
 
@@ -36,6 +44,12 @@ def main(argv=None) -> int:
     unit = float(np.max(hi - lo))
     inside = o3d.t.geometry.RaycastingScene()
     inside.add_triangles(o3d.core.Tensor(gt.v_pos.astype(np.float32)), o3d.core.Tensor(gt.t_pos_idx.astype(np.uint32)))
+    centers = None
+    if args.cameras:
+        from recon.io.cameras import load_cameras
+
+        centers = np.array([f.center for f in load_cameras(args.cameras).frames])
+        edges = [int(b) for b in args.bins.split(",")]
     print(f"{'mesh':60s} {'faces':>7s} {'mean':>9s} {'median':>9s} {'p90':>9s} {'p99':>9s} {'signed':>10s}")  # noqa: T201
     for path in args.meshes:
         m = read_mesh(path)
@@ -45,6 +59,17 @@ def main(argv=None) -> int:
         signed = np.where(occ, -d, d)
         print(f"{path[-60:]:60s} {len(m.t_pos_idx):7d} {d.mean():9.6f} {np.median(d):9.6f} "  # noqa: T201
               f"{np.percentile(d, 90):9.6f} {np.percentile(d, 99):9.6f} {signed.mean():+10.6f}")
+        if centers is not None:
+            normal = inside.compute_closest_points(o3d.core.Tensor(pts.astype(np.float32)))["primitive_normals"].numpy()
+            to_cam = centers[None] - pts[:, None]
+            to_cam /= np.linalg.norm(to_cam, axis=2, keepdims=True)
+            views = (np.einsum("pk,pck->pc", normal, to_cam) > 0.2).sum(1)
+            for lo_v, hi_v in zip(edges, [*edges[1:], len(centers) + 1], strict=True):
+                sel = (views >= lo_v) & (views < hi_v)
+                if sel.any():
+                    print(f"    facing views {lo_v:2d}-{hi_v - 1:2d}: {100 * sel.mean():5.1f} % of the surface, "  # noqa: T201
+                          f"mean {d[sel].mean():9.6f}, signed {signed[sel].mean():+10.6f}, "
+                          f"{100 * d[sel].sum() / d.sum():5.1f} % of the error")
     return 0
 
 
