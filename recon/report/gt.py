@@ -24,14 +24,14 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from recon.io.cameras import Camera, CameraSet, load_cameras
 from recon.io.mesh import Mesh
-from recon.report.inputs import Model, ReportError, read_map, read_textured_mesh
+from recon.report.inputs import Model, ReportError, read_map, read_surface_mesh
 
 log = logging.getLogger(__name__)
 
@@ -40,28 +40,69 @@ GT_PRODUCER = "part of the synthetic capture's ground truth, DESIGN section 1"
 
 @dataclass
 class GroundTruth:
-    model: Model
-    cameras: CameraSet
+    """What a capture's ``gt/`` folder allows; metrics against it are optional diagnostics.
+
+    Attributes
+    ----------
+    mesh : the ground-truth surface (UVs optional), or None when it cannot be read
+    model : the mesh with UVs and the three maps (images and texture errors need them), or None
+    cameras : ``gt/cameras.json`` (pose errors and ground-truth images need them), or None
+    skipped : ``{metric group: why}`` for each group the files do not allow; the report shows
+        these and the log names them
+    """
+
+    mesh: Mesh | None
+    model: Model | None
+    cameras: CameraSet | None
+    skipped: dict[str, str] = field(default_factory=dict)
 
 
 def read_ground_truth(gt_dir: str | os.PathLike) -> GroundTruth:
-    """``gt/mesh.obj`` (or ``mesh.ply``) with UVs, the three maps and ``gt/cameras.json``."""
+    """Read what ``gt/`` holds: ``mesh.obj`` (or ``mesh.ply``), ``diffuse/specular/roughness.exr``
+    and ``cameras.json``.
+
+    Never raises for a missing or unreadable file: geometry metrics need only the mesh, pose
+    errors only the cameras, images the textured model and the cameras, texture errors the
+    textured model. Each group the files do not allow is listed in ``skipped`` with the reason
+    (naming the file) and logged as a warning.
+    """
     d = Path(gt_dir)
+    skipped: dict[str, str] = {}
     mesh_path = d / "mesh.obj" if (d / "mesh.obj").is_file() or not (d / "mesh.ply").is_file() else d / "mesh.ply"
-    mesh = read_textured_mesh(mesh_path, GT_PRODUCER)
-    model = Model(
-        mesh=mesh,
-        diffuse=read_map(d / "diffuse.exr", "ground-truth diffuse", (1, 3), GT_PRODUCER),
-        specular=read_map(d / "specular.exr", "ground-truth specular", (1, 3), GT_PRODUCER),
-        roughness=read_map(d / "roughness.exr", "ground-truth roughness", (1,), GT_PRODUCER),
-    )
-    if model.diffuse.shape[2] == 1:
-        model.diffuse = np.repeat(model.diffuse, 3, axis=2)
+    mesh = model = cams = None
+    try:
+        mesh = read_surface_mesh(mesh_path, GT_PRODUCER)
+    except ReportError as e:
+        skipped["geometry"] = str(e)
+    maps_why = None
+    if mesh is not None and not mesh.has_uv:
+        maps_why = f"{mesh_path}: the mesh has no UVs, so ground-truth maps cannot be placed on it"
+    elif mesh is None:
+        maps_why = "no ground-truth mesh"
+    else:
+        try:
+            model = Model(
+                mesh=mesh,
+                diffuse=read_map(d / "diffuse.exr", "ground-truth diffuse", (1, 3), GT_PRODUCER),
+                specular=read_map(d / "specular.exr", "ground-truth specular", (1, 3), GT_PRODUCER),
+                roughness=read_map(d / "roughness.exr", "ground-truth roughness", (1,), GT_PRODUCER),
+            )
+        except ReportError as e:
+            maps_why = str(e)
+        else:
+            if model.diffuse.shape[2] == 1:
+                model.diffuse = np.repeat(model.diffuse, 3, axis=2)
     try:
         cams = load_cameras(d / "cameras.json")
-    except ValueError as e:
-        raise ReportError(f"{e} ({GT_PRODUCER})") from e
-    return GroundTruth(model, cams)
+    except (OSError, ValueError) as e:
+        skipped["pose_errors"] = f"{e} ({GT_PRODUCER})"
+    if maps_why is not None:
+        skipped["texture_rmse"] = maps_why
+    if maps_why is not None or cams is None:
+        skipped["image_rmse"] = maps_why if maps_why is not None else skipped["pose_errors"]
+    for what, why in skipped.items():
+        log.warning("ground truth: %s skipped: %s", what, why)
+    return GroundTruth(mesh, model, cams, skipped)
 
 
 # ---- Texture lookups on the surface ----

@@ -97,8 +97,8 @@ def read_map(path: str | os.PathLike, what: str, channels: tuple[int, ...], prod
         raise ReportError(f"{e} ({producer})") from e
 
 
-def read_textured_mesh(path: str | os.PathLike, producer: str) -> Mesh:
-    """Read an OBJ/PLY mesh that must have UVs and finite vertices."""
+def read_surface_mesh(path: str | os.PathLike, producer: str) -> Mesh:
+    """Read an OBJ/PLY mesh with faces and finite vertices (UVs optional)."""
     path = _require(Path(path), "the mesh", producer)
     try:
         mesh = read_mesh(path)
@@ -106,10 +106,16 @@ def read_textured_mesh(path: str | os.PathLike, producer: str) -> Mesh:
         raise ReportError(f"{e} ({producer})") from e
     if len(mesh.t_pos_idx) == 0:
         raise ReportError(f"{path}: the mesh has no faces ({producer})")
+    if not np.all(np.isfinite(mesh.v_pos)) or (mesh.has_uv and not np.all(np.isfinite(mesh.v_tex))):
+        raise ReportError(f"{path}: vertex positions or UVs contain NaN or Inf ({producer})")
+    return mesh
+
+
+def read_textured_mesh(path: str | os.PathLike, producer: str) -> Mesh:
+    """Read an OBJ/PLY mesh that must have UVs and finite vertices."""
+    mesh = read_surface_mesh(path, producer)
     if not mesh.has_uv:
         raise ReportError(f"{path}: the mesh has no UVs (faces need v/vt indices); {producer}")
-    if not (np.all(np.isfinite(mesh.v_pos)) and np.all(np.isfinite(mesh.v_tex))):
-        raise ReportError(f"{path}: vertex positions or UVs contain NaN or Inf ({producer})")
     return mesh
 
 

@@ -43,6 +43,9 @@ from recon.brdf import R_MIN
 from recon.io.atomic import atomic_dir
 from recon.io.cameras import CameraSet, load_cameras
 from recon.io.images import linear_to_srgb, write_png
+from recon.io.mesh import Mesh
+from recon.metrics import MetricsError, Similarity, chamfer, pose_errors
+from recon.report import gt as gtm
 from recon.report import html as page_html
 from recon.report import plots
 from recon.report.inputs import (
@@ -58,7 +61,15 @@ from recon.report.inputs import (
     read_summary,
     summary_r_min,
 )
-from recon.report.views import ERROR_COLORMAP, compare, compare_view, load_view, render_view, write_view_images
+from recon.report.views import (
+    ERROR_COLORMAP,
+    compare,
+    compare_view,
+    load_view,
+    render_view,
+    report_camera,
+    write_view_images,
+)
 from recon.report.viewer import find_bundle, install_viewer, viewer_head, viewer_html
 
 log = logging.getLogger(__name__)
@@ -199,14 +210,17 @@ def make_report(
         raise ReportError(f"{e} (written by the poses stage: run it first)") from e
     if not Path(glb).is_file():
         raise ReportError(f"{glb}: not found; the report needs the export stage's asset.glb (run it first)")
-    find_bundle(settings.viewer_js or None)
+    viewer_skipped = None
+    try:
+        find_bundle(settings.viewer_js or None)
+    except ReportError as e:  # the 3D view is optional: the report goes on without it
+        viewer_skipped = str(e)
+        log.warning("3D view skipped: %s", viewer_skipped)
     chosen = _spread(list(cams.frames), settings.max_views)
     views = {c.stem: load_view(c.stem, image_dirs, mask_dirs) for c in chosen}
     gt = None
     if gt_dir is not None and Path(gt_dir).is_dir():
-        from recon.report.gt import read_ground_truth
-
-        gt = read_ground_truth(gt_dir)
+        gt = gtm.read_ground_truth(gt_dir)
 
     preset = preset or (summary.get("preset") if isinstance(summary.get("preset"), str) else None)
     light = float(summary["light_intensity"]) if _positive(summary.get("light_intensity")) else cams.light_intensity
@@ -250,9 +264,13 @@ def make_report(
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as tmp:
         # ---- 3D view ----
-        names = install_viewer(tmp, glb, settings.viewer_js or None)
-        page.viewer_head = viewer_head(names)
-        page.viewer_body = viewer_html(names, f"{capture}: optimized asset")
+        if viewer_skipped is None:
+            names = install_viewer(tmp, glb, settings.viewer_js or None)
+            page.viewer_head = viewer_head(names)
+            page.viewer_body = viewer_html(names, f"{capture}: optimized asset")
+        else:
+            metrics["skipped"] = {"3d_view": viewer_skipped}
+            page.notes.append(f"3D view skipped: {viewer_skipped}")
 
         # ---- Views ----
         (tmp / "views").mkdir()
@@ -357,57 +375,77 @@ def _positive_or_zero(x) -> bool:
 
 def _gt_metrics(model, cams: CameraSet, gt, light: float, settings: ReportSettings, variant, r_min,
                 folder: Path, page) -> dict:
-    """DESIGN section 5 metrics against ``gt`` (see :mod:`recon.report.gt`); adds gt views to the page."""
-    from recon.io.mesh import Mesh
-    from recon.metrics import MetricsError, chamfer, pose_errors
-    from recon.report import gt as gtm
-    from recon.report.views import report_camera
+    """DESIGN section 5 metrics against ``gt`` (see :mod:`recon.report.gt`); adds gt views to the page.
 
-    sim, how = gtm.alignment(cams, gt.cameras)
+    Ground-truth metrics are an optional diagnostic: each group is computed when the files of
+    ``gt/`` allow it, and what was skipped is recorded (``skipped``: group -> reason) and shown,
+    never raised.
+    """
     out: dict = {}
-    try:
-        out.update(chamfer(model.mesh, gt.model.mesh, similarity=sim, n_samples=settings.chamfer_samples,
-                           seed=settings.seed))
-    except MetricsError as e:
-        raise ReportError(f"ground-truth geometry metrics: {e}") from e
+    skipped = dict(gt.skipped)
+    if gt.cameras is not None:
+        sim, how = gtm.alignment(cams, gt.cameras)
+    else:
+        sim, how = Similarity.identity(), "identity (no ground-truth cameras)"
     out["alignment"] = {"method": how, "similarity": sim.to_dict()}
-    try:
-        pe = pose_errors(cams, gt.cameras, sim)
-        out["pose_errors"] = {k: pe[k] for k in ("mean_rotation_deg", "max_rotation_deg", "mean_center", "max_center")}
-    except MetricsError as e:
-        log.info("no pose errors: %s", e)
+    if gt.mesh is not None:
+        try:
+            out.update(chamfer(model.mesh, gt.mesh, similarity=sim, n_samples=settings.chamfer_samples,
+                               seed=settings.seed))
+        except MetricsError as e:
+            skipped["geometry"] = f"ground-truth geometry metrics: {e}"
+    if gt.cameras is not None:
+        try:
+            pe = pose_errors(cams, gt.cameras, sim)
+            out["pose_errors"] = {k: pe[k] for k in ("mean_rotation_deg", "max_rotation_deg", "mean_center",
+                                                     "max_center")}
+        except MetricsError as e:
+            log.info("no pose errors: %s", e)
 
     # Images from the true cameras: ground truth against the reconstruction in the gt frame.
-    rec_mesh = Mesh(sim.apply(model.mesh.v_pos), model.mesh.t_pos_idx, model.mesh.v_tex, model.mesh.t_tex_idx)
-    rec_light = light * sim.scale**2
-    gt_cams, held_out = gtm.image_views(cams, gt.cameras, settings.gt_views)
-    (folder / "gt").mkdir()
-    per_view = {}
-    for k, cam in enumerate(gt_cams):
-        cam = report_camera(cam, settings.max_size)
-        seed = settings.seed + 1000 + k
-        img_gt, cov_gt = render_view(gt.model.mesh, gt.model.textures(), cam, gt.cameras.light_intensity,
-                                     settings.spp, seed, variant, r_min)
-        img_rec, cov_rec = render_view(rec_mesh, model.textures(), cam, rec_light, settings.spp, seed, variant, r_min)
-        res = compare(cam.stem, cam, img_gt, cov_gt, img_rec, cov_rec)
-        per_view[cam.stem] = res.rmse
-        files = write_view_images(res, folder / "gt", settings.error_vmax)
-        page.gt_views.append(page_html.ViewEntry(cam.stem, res.rmse, {r: f"gt/{f}" for r, f in files.items()},
-                                                 labels=("ground truth", "reconstruction", "error")))
-    out["image_rmse"] = float(np.mean(list(per_view.values()))) if per_view else None
-    out["image_rmse_per_view"] = per_view
-    out["image_views"] = "held-out" if held_out else "all true views (none held out)"
+    per_view: dict = {}
+    if gt.model is not None and gt.cameras is not None:
+        rec_mesh = Mesh(sim.apply(model.mesh.v_pos), model.mesh.t_pos_idx, model.mesh.v_tex, model.mesh.t_tex_idx)
+        rec_light = light * sim.scale**2
+        gt_cams, held_out = gtm.image_views(cams, gt.cameras, settings.gt_views)
+        (folder / "gt").mkdir()
+        for k, cam in enumerate(gt_cams):
+            cam = report_camera(cam, settings.max_size)
+            seed = settings.seed + 1000 + k
+            img_gt, cov_gt = render_view(gt.model.mesh, gt.model.textures(), cam, gt.cameras.light_intensity,
+                                         settings.spp, seed, variant, r_min)
+            img_rec, cov_rec = render_view(rec_mesh, model.textures(), cam, rec_light, settings.spp, seed, variant,
+                                           r_min)
+            res = compare(cam.stem, cam, img_gt, cov_gt, img_rec, cov_rec)
+            per_view[cam.stem] = res.rmse
+            files = write_view_images(res, folder / "gt", settings.error_vmax)
+            page.gt_views.append(page_html.ViewEntry(cam.stem, res.rmse, {r: f"gt/{f}" for r, f in files.items()},
+                                                     labels=("ground truth", "reconstruction", "error")))
+        out["image_rmse"] = float(np.mean(list(per_view.values()))) if per_view else None
+        out["image_rmse_per_view"] = per_view
+        out["image_views"] = "held-out" if held_out else "all true views (none held out)"
+    if gt.model is not None and "unit" in out:
+        out["texture_rmse"] = gtm.texture_errors(model, gt.model, sim, out["unit"], settings.texture_samples,
+                                                 settings.texture_max_distance, seed=settings.seed)
+    elif gt.model is not None:
+        skipped.setdefault("texture_rmse", "needs the geometry metrics' unit bounding box")
 
-    out["texture_rmse"] = gtm.texture_errors(model, gt.model, sim, out["unit"], settings.texture_samples,
-                                             settings.texture_max_distance, seed=settings.seed)
-    page.gt_note = (
-        f"Geometry in the ground-truth frame scaled to a unit bounding box ({settings.chamfer_samples} samples "
-        f"per surface); alignment: {how}. Image RMSE over {len(per_view)} "
-        f"{'held-out' if held_out else 'true (none held out)'} views rendered with the collocated light. "
-        "Texture RMSE compares map values at closest surface points (linear values in [0, 1])."
-    )
-    if out["texture_rmse"]["fraction"] == 0.0:
-        page.gt_note += (f" No ground-truth surface sample has reconstructed surface within "
+    notes = []
+    if "unit" in out:
+        notes.append(f"Geometry in the ground-truth frame scaled to a unit bounding box ({settings.chamfer_samples} "
+                     f"samples per surface); alignment: {how}.")
+    if per_view:
+        notes.append(f"Image RMSE over {len(per_view)} {out['image_views']} rendered with the collocated light.")
+    if "texture_rmse" in out:
+        notes.append("Texture RMSE compares map values at closest surface points (linear values in [0, 1]).")
+        if out["texture_rmse"]["fraction"] == 0.0:
+            notes.append(f"No ground-truth surface sample has reconstructed surface within "
                          f"{settings.texture_max_distance} (unit bbox): texture errors not computed.")
+    for what, why in skipped.items():
+        notes.append(f"Skipped {what}: {why}.")
+        log.warning("ground-truth %s skipped: %s", what, why)
+    if skipped:
+        out["skipped"] = skipped
+    page.gt_note = " ".join(notes)
     page.gt_metrics = out
     return out

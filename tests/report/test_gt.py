@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import report_scene
@@ -10,7 +12,7 @@ from recon.io.cameras import CameraSet
 from recon.io.mesh import Mesh
 from recon.metrics import Similarity
 from recon.report.gt import closest_uv, image_views, read_ground_truth, sample_map, sample_surface_uv, texture_errors
-from recon.report.inputs import Model, ReportError
+from recon.report.inputs import Model
 
 
 def test_sample_map_texel_centers_and_bilinear():
@@ -72,7 +74,9 @@ def test_read_ground_truth_missing_map_names_it(scene, tmp_path):
 
     shutil.copytree(scene.capture_dir / "gt", tmp_path / "gt")
     g = read_ground_truth(tmp_path / "gt")
-    assert isinstance(g.model.mesh, Mesh) and len(g.cameras) == 4
+    assert isinstance(g.model.mesh, Mesh) and len(g.cameras) == 4 and g.skipped == {}
     (tmp_path / "gt" / "specular.exr").unlink()
-    with pytest.raises(ReportError, match=r"gt/specular\.exr: not found"):
-        read_ground_truth(tmp_path / "gt")
+    g = read_ground_truth(tmp_path / "gt")
+    assert g.model is None and isinstance(g.mesh, Mesh) and len(g.cameras) == 4
+    assert re.search(r"gt/specular\.exr: not found", g.skipped["texture_rmse"])
+    assert set(g.skipped) == {"texture_rmse", "image_rmse"}
