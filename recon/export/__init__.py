@@ -2,7 +2,7 @@
 ``asset.usdz`` / ``asset.usda`` (UsdPreviewSurface, specular workflow), with validators.
 
 Conventions (material mappings, sRGB/linear textures, UV origin, up axis and units) are
-documented in :mod:`recon.export.asset`.
+documented in :mod:`recon.export.conventions`.
 """
 
 from recon.export.asset import (

@@ -1,6 +1,6 @@
 """glTF 2.0 binary (.glb) writer: one mesh, one material with ``KHR_materials_specular``.
 
-Material mapping and frames: see :mod:`recon.export.asset`. glTF has one index per vertex,
+Material mapping and frames: see :mod:`recon.export.conventions`. glTF has one index per vertex,
 so vertices are split where a position has several UVs (seams); each copy keeps the
 area-weighted normal of its position (DESIGN section 3), computed on the unsplit mesh so the
 shading stays smooth across seams.
@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from recon import __version__
+from recon.export.conventions import SPECULAR_COLOR_FACTOR
 from recon.io.atomic import atomic_path
 from recon.io.mesh import Mesh
 
@@ -99,9 +101,6 @@ def write_glb(
     """
     import pygltflib as gl
     from scipy.spatial.transform import Rotation
-
-    from recon import __version__
-    from recon.export.asset import SPECULAR_COLOR_FACTOR
 
     positions, normals, uv_obj, faces = split_seams(mesh)
     pos32 = positions.astype(np.float32)

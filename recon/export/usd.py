@@ -1,6 +1,6 @@
 """USD writer: ``asset.usda`` (root layer) and ``asset.usdz`` (it packaged with its textures).
 
-Layout (material mapping and frames: :mod:`recon.export.asset`)::
+Layout (material mapping and frames: :mod:`recon.export.conventions`)::
 
     /asset                    Xform, defaultPrim, kind = component (no transform of its own,
                               so a referencing prim may set one without losing ours)

@@ -202,12 +202,12 @@ def test_failed_export_leaves_the_previous_one(tmp_path, model, monkeypatch):
     export_asset(*model.inputs(), out, ExportSettings(up="identity"))
     before = {p.name: p.read_bytes() for p in out.iterdir()}
 
-    import recon.export.usd as usd
+    import recon.export.asset as asset
 
     def fail(*args, **kwargs):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(usd, "write_usd", fail)  # fails after the textures and the glb exist
+    monkeypatch.setattr(asset, "write_usd", fail)  # fails after the textures and the glb exist
     with pytest.raises(RuntimeError, match="disk full"):
         export_asset(*model.inputs(), out, ExportSettings())
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
