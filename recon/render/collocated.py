@@ -124,6 +124,23 @@ class RenderSettings:
         return int(round(self.edge_samples_per_pixel * width * height))
 
 
+def _aligned(a, dtype) -> np.ndarray:
+    """A flat copy of ``a`` whose buffer starts on a 64-byte boundary.
+
+    drjit maps numpy memory into its arrays without copying and compiles separate kernels
+    for aligned and unaligned inputs; numpy's buffers are aligned to 16 bytes only, so the
+    same call could compile a new kernel variant whenever an allocation landed elsewhere.
+    Every numpy array the renderer hands to drjit goes through here (torch's CPU buffers are
+    64-byte aligned already).
+    """
+    a = np.ascontiguousarray(a, dtype=dtype).reshape(-1)
+    buf = np.empty(a.size + 64 // a.itemsize, dtype=dtype)
+    start = (-buf.ctypes.data % 64) // a.itemsize
+    out = buf[start:start + a.size]
+    out[...] = a
+    return out
+
+
 def _as_int_array(a, name: str, cols: int) -> np.ndarray:
     arr = np.asarray(a)
     if arr.ndim != 2 or arr.shape[1] != cols or not np.issubdtype(arr.dtype, np.integer):
@@ -172,10 +189,10 @@ class CollocatedRenderer:
         mi = self.mi
         self.n_faces = len(self.t_pos_idx)
         self.n_vertices_min = int(self.t_pos_idx.max()) + 1
-        self._faces = mi.UInt32(self.t_pos_idx.reshape(-1).astype(np.uint32))
+        self._faces = mi.UInt32(_aligned(self.t_pos_idx, np.uint32))
         # Per face corner UVs, (F*3, 2) flattened; gathered by face id at the hit.
         corner_uv = v_tex[self.t_tex_idx].reshape(-1, 2).astype(np.float32)
-        self._corner_uv = mi.Float(corner_uv.reshape(-1))
+        self._corner_uv = mi.Float(_aligned(corner_uv, np.float32))
         self.topology: EdgeTopology = edge_topology(self.t_pos_idx)
         self._scene = None
         self._scene_params = None
@@ -215,7 +232,7 @@ class CollocatedRenderer:
             arr = np.asarray(v_pos, dtype=np.float32)
             if arr.ndim != 2 or arr.shape[1] != 3:
                 raise RenderError(f"v_pos: expected shape (V, 3), got {arr.shape}")
-            flat = mi.Float(arr.reshape(-1))
+            flat = mi.Float(_aligned(arr, np.float32))
         n = dr.width(flat) // 3
         if n < self.n_vertices_min:
             raise RenderError(f"v_pos has {n} vertices but the faces refer to vertex "
@@ -236,7 +253,7 @@ class CollocatedRenderer:
             raise RenderError(f"{name}: expected an (H, W, C) texture with C in {channels}, "
                               f"got shape {shape}")
         if flat is None:
-            flat = mi.Float(arr.reshape(-1))
+            flat = mi.Float(_aligned(arr, np.float32))
         return flat, int(shape[0]), int(shape[1]), int(shape[2])
 
     def _cam_values(self, cam_table, view):
@@ -261,7 +278,7 @@ class CollocatedRenderer:
             rows.append(np.concatenate([Kinv.ravel(), R.ravel(), t, cam.center]))
         if len(rows) == 1:
             return [self.dr.opaque(self.mi.Float, float(x)) for x in rows[0]]
-        return self.mi.Float(np.concatenate(rows).astype(np.float32))
+        return self.mi.Float(_aligned(np.concatenate(rows), np.float32))
 
     # ------------------------------------------------------------------ scene
     def _update_scene(self, v_flat, n_vertices: int):
@@ -566,10 +583,10 @@ class CollocatedRenderer:
         start = np.concatenate([[0], np.cumsum(counts)[:-1]])
         step = np.where(counts > 0, seg.total_length / np.maximum(counts, 1), 0.0)
         def f32(a):
-            return mi.Float(np.asarray(a, np.float32))
+            return mi.Float(_aligned(a, np.float32))
 
         def u32(a):
-            return mi.UInt32(np.asarray(a, np.uint32))
+            return mi.UInt32(_aligned(a, np.uint32))
 
         s_cum, s_len = f32(cum_local), f32(seg.length)
         j = dr.arange(mi.UInt32, M)

@@ -128,8 +128,9 @@ class MitsubaScene:
             p["object.bsdf.diffuse.data"] = tex["diffuse"]
             p["object.bsdf.specular.data"] = tex["specular"]
             p["object.bsdf.roughness.data"] = tex["roughness"]
-            p["light.intensity.value"] = mi.Color3f(float(light_intensity))
-            p["light.position"] = mi.Point3f(*[float(x) for x in cam.center])
+            # Opaque: literal values would be baked into the kernels (recompiled per view and call).
+            p["light.intensity.value"] = dr.opaque(mi.Color3f, float(light_intensity))
+            p["light.position"] = dr.opaque(mi.Point3f, [float(x) for x in cam.center])
             p.update()
             sensor = mi.load_dict({**mitsuba_sensor_dict(cam, spp=spp, sample_border=True),
                                    **clip_range(cam, v_np)})
