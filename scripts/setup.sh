@@ -48,6 +48,38 @@ for lock in tools/*/package-lock.json; do
   fi
 done
 
+# ---- Blender as a Python module (tests/blender: the exported asset opened in Blender) ----
+# The pinned `bpy` wheel (tools/blender/requirements.txt) in its own environment,
+# tools/blender/.venv: bpy bundles its own USD, OpenEXR and glog, and aborted at import inside
+# the project's .venv ("You called InitGoogleLogging() twice"). It needs a few X11 client
+# libraries even headless. Skipped when the stamp matches the requirements file.
+bl_env=tools/blender/.venv
+bl_want=$(sha256sum tools/blender/requirements.txt | cut -d' ' -f1)
+if [ ! -f "$bl_env/.setup-stamp" ] || [ "$(cat "$bl_env/.setup-stamp")" != "$bl_want" ] || \
+   [ ! -x "$bl_env/bin/python" ]; then
+  bl_pkgs=()
+  for pair in libX11.so.6:libx11-6 libXrender.so.1:libxrender1 libXfixes.so.3:libxfixes3 \
+              libXi.so.6:libxi6 libxkbcommon.so.0:libxkbcommon0 libSM.so.6:libsm6 \
+              libICE.so.6:libice6 libXext.so.6:libxext6 libXt.so.6:libxt6; do
+    ldconfig -p 2>/dev/null | grep -q "${pair%%:*}" || bl_pkgs+=("${pair#*:}")
+  done
+  if [ ${#bl_pkgs[@]} -gt 0 ]; then
+    if [ "$(id -u)" -ne 0 ]; then
+      log "missing system packages for bpy: ${bl_pkgs[*]}; run as root or: sudo apt-get install -y ${bl_pkgs[*]}"
+      exit 1
+    fi
+    log "installing system packages for bpy: ${bl_pkgs[*]}"
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${bl_pkgs[@]}" >/dev/null || \
+      { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${bl_pkgs[@]}" >/dev/null; }
+  fi
+  log "installing Blender's bpy into $bl_env (first run: a 370 MB wheel)"
+  [ -x "$bl_env/bin/python" ] || "$py" -m venv "$bl_env"
+  "$bl_env/bin/python" -m pip install -q -r tools/blender/requirements.txt
+  "$bl_env/bin/python" -c "import bpy; print('[setup] bpy', bpy.app.version_string)" >&2
+  echo "$bl_want" > "$bl_env/.setup-stamp"
+fi
+# ---- end of the Blender block ----
+
 # ---- Python environment ----
 stamp=.venv/.setup-stamp
 want=$(cat requirements.txt requirements-dev.txt pyproject.toml | sha256sum | cut -d' ' -f1)
