@@ -19,7 +19,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from conftest import DEMO_GT, asset_views, read_glb, read_usdz, run_blender  # noqa: E402
+from blender_case import DEMO_GT, asset_views, run_blender  # noqa: E402
+from export_readers import read_glb, read_usdz  # noqa: E402
 
 from recon.export import ExportSettings, export_asset  # noqa: E402
 from recon.io.cameras import load_cameras  # noqa: E402

@@ -26,7 +26,7 @@ import zipfile
 
 import numpy as np
 import pytest
-from conftest import Y_UP_TO_BLENDER, BlenderResult
+from blender_case import Y_UP_TO_BLENDER, BlenderResult
 from PIL import Image
 from scipy.spatial import cKDTree
 
