@@ -510,8 +510,8 @@ def test_kernels_are_reused_across_iterations(mi, dr, scene):
         assert all(x.grad is not None and torch.isfinite(x.grad).all() for x in xs)
 
     seen = set()
-    for k, kw in enumerate([{}, dict(k=1, light=LIGHT + 1, seed=101, cams=1, tex=0.1),
-                            dict(k=2, light=LIGHT + 2, seed=102, tex=0.2), dict(k=3, seed=103, cams=1)]):
+    for kw in [{}, dict(k=1, light=LIGHT + 1, seed=101, cams=1, tex=0.1),
+               dict(k=2, light=LIGHT + 2, seed=102, tex=0.2), dict(k=3, seed=103, cams=1)]:
         seen |= set(_jit_kernel_hashes(dr, lambda kw=kw: step(**kw)))
     assert seen
     for name, kw in [("seed", dict(seed=7)), ("light intensity", dict(light=2.5 * LIGHT)),
