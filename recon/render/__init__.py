@@ -13,6 +13,6 @@ with Mitsuba's integrators, for comparisons), :mod:`recon.render.mitsuba_bsdf` (
 reference plugin).
 """
 
-from recon.render.collocated import CollocatedRenderer, RenderError, RenderSettings
+from recon.render.collocated import CollocatedRenderer, RenderError, RenderSettings, camera_table
 
-__all__ = ["CollocatedRenderer", "RenderError", "RenderSettings"]
+__all__ = ["CollocatedRenderer", "RenderError", "RenderSettings", "camera_table"]

@@ -124,6 +124,19 @@ class RenderSettings:
         return int(round(self.edge_samples_per_pixel * width * height))
 
 
+def camera_table(cameras: Sequence[Camera]) -> np.ndarray:
+    """(B, 24) float64 per-view Kinv (row-major), R_w2c, t_w2c, camera center: the values the
+    renderer's rays and projections read (see ``camera_table`` of :meth:`CollocatedRenderer.render_batch`)."""
+    rows = []
+    for cam in cameras:
+        if not isinstance(cam, Camera):
+            raise RenderError(f"cameras: expected recon.io.cameras.Camera objects, got {type(cam)}")
+        R = cam.world_to_camera[:3, :3]
+        t = cam.world_to_camera[:3, 3]
+        rows.append(np.concatenate([np.linalg.inv(cam.K).ravel(), R.ravel(), t, cam.center]))
+    return np.stack(rows)
+
+
 def _aligned(a, dtype) -> np.ndarray:
     """A flat copy of ``a`` whose buffer starts on a 64-byte boundary.
 
@@ -268,17 +281,20 @@ class CollocatedRenderer:
     def _camera_table(self, cameras: Sequence[Camera]):
         """Per-view Kinv, R_w2c, t_w2c, center (24 floats each): a flat mi.Float for several
         views, a list of 24 opaque scalars for one."""
-        rows = []
-        for cam in cameras:
-            if not isinstance(cam, Camera):
-                raise RenderError(f"cameras: expected recon.io.cameras.Camera objects, got {type(cam)}")
-            Kinv = np.linalg.inv(cam.K)
-            R = cam.world_to_camera[:3, :3]
-            t = cam.world_to_camera[:3, 3]
-            rows.append(np.concatenate([Kinv.ravel(), R.ravel(), t, cam.center]))
+        rows = camera_table(cameras)
         if len(rows) == 1:
             return [self.dr.opaque(self.mi.Float, float(x)) for x in rows[0]]
-        return self.mi.Float(_aligned(np.concatenate(rows), np.float32))
+        return self.mi.Float(_aligned(rows, np.float32))
+
+    def _given_camera_table(self, table, n_views: int):
+        """A caller's (possibly differentiable) flat B x 24 table; one view: 24 broadcast scalars
+        gathered from it (AD sums their lanes back into the table)."""
+        dr, mi = self.dr, self.mi
+        if not isinstance(table, mi.Float) or dr.width(table) != n_views * _CAM_STRIDE:
+            raise RenderError(f"camera_table: expected a flat mi.Float of {n_views} x {_CAM_STRIDE} values")
+        if n_views == 1:
+            return [dr.gather(mi.Float, table, dr.opaque(mi.UInt32, k)) for k in range(_CAM_STRIDE)]
+        return table
 
     # ------------------------------------------------------------------ scene
     def _update_scene(self, v_flat, n_vertices: int):
@@ -464,8 +480,15 @@ class CollocatedRenderer:
         return out
 
     def render_batch(self, v_pos, diffuse, specular, roughness, cameras: Sequence[Camera],
-                     light_intensity: float = 1.0, seed: int = 0):
-        """Like :meth:`render` for views of one size; returns one mi.TensorXf (B, h, w, 3)."""
+                     light_intensity: float = 1.0, seed: int = 0, camera_table=None):
+        """Like :meth:`render` for views of one size; returns one mi.TensorXf (B, h, w, 3).
+
+        ``camera_table`` : optional flat mi.Float of B x 24 values (per view Kinv, R_w2c, t_w2c,
+        center; :func:`camera_table`) at the values of ``cameras``; when its gradients are
+        enabled, the image is differentiable with respect to the cameras: the interior term
+        through the primary rays, the boundary term through the projected silhouettes'
+        motion. ``cameras`` still give the image size and the silhouette sets.
+        """
         dr, mi = self.dr, self.mi
         cameras = list(cameras)
         if not cameras:
@@ -477,6 +500,9 @@ class CollocatedRenderer:
             raise RenderError(f"light_intensity must be a finite number >= 0, got {light_intensity}")
         if self.settings.boundary == "projective":
             from recon.render.mitsuba_scene import render_projective
+
+            if camera_table is not None:
+                raise RenderError("camera gradients need boundary='edge' or 'none', not 'projective'")
 
             return render_projective(self, v_pos, diffuse, specular, roughness, cameras,
                                      light_intensity, seed)
@@ -498,9 +524,10 @@ class CollocatedRenderer:
         scene = self._update_scene(v_flat, nv)
         self._mark("bvh")
         n_flat = self._vertex_normals(v_flat, nv)
-        cam_table = self._camera_table(cameras)
-        self._mark("normals", n_flat)
         B = len(cameras)
+        cam_table = self._camera_table(cameras) if camera_table is None else \
+            self._given_camera_table(camera_table, B)
+        self._mark("normals", n_flat)
         spp = int(self.settings.spp)
         seed_o = dr.opaque(mi.UInt32, np.uint32(seed & 0xFFFFFFFF))
         # ---- Interior: MC over pixel footprints, AD through the integrand
@@ -517,15 +544,16 @@ class CollocatedRenderer:
         dr.eval(flat, prim, valid, o, d)
         self._mark("primary")
         # ---- Boundary: edge sampling (primal zero, derivative = the silhouette term)
-        if self.settings.boundary == "edge" and dr.grad_enabled(v_flat):
+        if self.settings.boundary == "edge" and (dr.grad_enabled(v_flat) or (
+                camera_table is not None and dr.grad_enabled(camera_table))):
             self._boundary_term(flat, scene, v_flat, n_flat, tex, cameras, cam_table,
                                 float(light_intensity), seed, B, h, w)
             self._mark("edge_rays", flat)
         return mi.TensorXf(flat, shape=(B, h, w, 3))
 
     def render_torch(self, v_pos, diffuse, specular, roughness, cameras: Sequence[Camera],
-                     light_intensity: float = 1.0, seed: int = 0):
-        """Render with PyTorch tensors; autograd reaches all four inputs.
+                     light_intensity: float = 1.0, seed: int = 0, camera_table=None):
+        """Render with PyTorch tensors; autograd reaches all four inputs (and the cameras).
 
         Parameters
         ----------
@@ -535,6 +563,9 @@ class CollocatedRenderer:
         roughness : torch.Tensor (H, W, 1)
         cameras : sequence of B :class:`Camera`, all of one image size
         light_intensity, seed : as in :meth:`render`
+        camera_table : torch.Tensor (B, 24), optional
+            The cameras' values (:func:`camera_table`; e.g. from
+            :func:`recon.render.torch_bridge.camera_table_torch`); autograd reaches it.
 
         Returns
         -------
@@ -549,14 +580,21 @@ class CollocatedRenderer:
             if not isinstance(t, torch.Tensor):
                 raise RenderError(f"render_torch: {name} must be a torch.Tensor, got {type(t)}")
         tensors = (v_pos, diffuse, specular, roughness)
-        if not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)):
+        cameras = list(cameras)
+        if camera_table is not None and tuple(camera_table.shape) != (len(cameras), 24):
+            raise RenderError(f"render_torch: camera_table must have shape ({len(cameras)}, 24), "
+                              f"got {tuple(camera_table.shape)}")
+        grads = any(t.requires_grad for t in tensors) or (camera_table is not None and camera_table.requires_grad)
+        if not (torch.is_grad_enabled() and grads):
             mi = self.mi
+            table = None if camera_table is None else mi.Float(
+                camera_table.detach().to(torch.float32).reshape(-1).contiguous().clone())
             out = self.render_batch(
                 *(mi.TensorXf(t.detach().to(torch.float32).contiguous().clone()) for t in tensors),
-                list(cameras), float(light_intensity), int(seed))
+                cameras, float(light_intensity), int(seed), camera_table=table)
             return out.torch().clone().to(v_pos.device)
-        return RenderFunction.apply(self, list(cameras), float(light_intensity), int(seed),
-                                    *tensors)
+        return RenderFunction.apply(self, cameras, float(light_intensity), int(seed),
+                                    *tensors, camera_table)
 
     # ------------------------------------------------------------------ boundary
     def _boundary_term(self, image, scene, v_flat, n_flat, tex, cameras, cam_table,
