@@ -4,21 +4,68 @@ Every writer in ``recon`` goes through :func:`atomic_path` (one file) or
 :func:`atomic_dir` (a whole stage folder): data is written next to the destination under a
 temporary name and renamed into place only on success, so an error or a kill never leaves a
 half-written file that a later stage (or Snakemake) would mistake for a result.
+
+Temporary names carry the writing process's id (``.<name>.tmp-<pid>-<random>``). A process
+killed inside a block (kill -9, power loss) leaves its temporary behind; the next writer of the
+same destination removes every such leftover whose process no longer runs, so kills do not
+accumulate hidden folders, and a writer that is still running is never disturbed.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's live process
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
+    """Remove the temporaries that killed writers of ``path`` left beside it.
+
+    Matches ``.<name>.tmp-<pid>-*`` and ``.<name>.old-<pid>`` (and, for files,
+    ``.<stem>.tmp-<pid>-*<suffix>``) whose process is gone; returns what was removed.
+    """
+    path = Path(path)
+    if not path.parent.is_dir():
+        return []
+    names = {re.escape(path.name), re.escape(path.stem)}
+    pattern = re.compile(r"^\.(?:%s)\.(?:tmp|old)-(\d+)(?:-.*)?$" % "|".join(sorted(names)))
+    removed = []
+    for p in path.parent.iterdir():
+        m = pattern.match(p.name)
+        if m is None or int(m.group(1)) == os.getpid() or _running(int(m.group(1))):
+            continue
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            with contextlib.suppress(FileNotFoundError):
+                p.unlink()
+        removed.append(p)
+    if removed:
+        log.info("removed %d temporaries of interrupted runs beside %s: %s", len(removed), path,
+                 ", ".join(p.name for p in removed))
+    return removed
 
 
 
@@ -31,8 +78,9 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None):
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(path)
     fd, tmp = tempfile.mkstemp(
-        prefix=f".{path.stem}.", suffix=suffix if suffix is not None else path.suffix,
+        prefix=f".{path.stem}.tmp-{os.getpid()}-", suffix=suffix if suffix is not None else path.suffix,
         dir=path.parent,
     )
     os.close(fd)
@@ -55,7 +103,8 @@ def atomic_dir(path: str | os.PathLike):
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    remove_stale_temporaries(path)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-{os.getpid()}-", dir=path.parent))
     os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700
     try:
         yield tmp

@@ -45,3 +45,38 @@ def test_atomic_dir_leaves_previous_result_on_failure(tmp_path):
         (d / "y").write_text("3")
     assert sorted(p.name for p in out.iterdir()) == ["y"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["stage"]
+
+
+_KILLED_WRITER = """
+import os, signal, sys
+from recon.io.atomic import atomic_dir, atomic_path
+out = sys.argv[1]
+with atomic_path(out + "/file.txt") as t:
+    t.write_text("half")
+    with atomic_dir(out + "/stage") as d:
+        (d / "x").write_text("half")
+        os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def test_temporaries_of_a_killed_writer_are_removed_by_the_next_one(tmp_path):
+    """kill -9 inside atomic_dir/atomic_path leaves hidden temporaries; the next write of the same
+    destination removes them (their process is gone) and leaves a live writer's alone."""
+    import subprocess
+    import sys
+
+    with atomic_dir(tmp_path / "stage") as d:
+        (d / "x").write_text("previous")
+    r = subprocess.run([sys.executable, "-c", _KILLED_WRITER, str(tmp_path)], capture_output=True)
+    assert r.returncode == -9
+    left = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("."))
+    assert any(n.startswith(".stage.tmp-") for n in left) and any(n.startswith(".file.tmp-") for n in left), left
+    assert (tmp_path / "stage" / "x").read_text() == "previous"  # the previous result survived
+    alive = tmp_path / f".stage.tmp-{os.getppid()}-live"  # a running process's temporary
+    alive.mkdir()
+    with atomic_dir(tmp_path / "stage") as d:
+        (d / "x").write_text("new")
+    with atomic_path(tmp_path / "file.txt") as t:
+        t.write_text("new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == [alive.name, "file.txt", "stage"]
+    assert (tmp_path / "stage" / "x").read_text() == "new"
