@@ -22,6 +22,12 @@ median exposure H equals the sensor's ``saturation_exposure``, which makes the s
 offsets 0, +v, 0, -v, ... so the median stays at offset 0. EXR photos are the renders (plus noise
 when ``noise``), PNG photos their sRGB encoding (clipped to [0, 1]).
 
+Scenes. ``scene="void"`` (the default): the object alone in a black void, cameras on a
+Fibonacci sphere around it (some from below). ``scene="tabletop"``: the object stands on a
+textured table lit by the same flash, cameras on hand-held rings 15-60 degrees above the table,
+and the capture also holds ``gt/masks/<stem>.png`` (the object's true silhouettes) and
+``gt/plane.json`` (the table, :mod:`recon.support`); see :mod:`recon.synth.tabletop`.
+
 Everything is a function of the settings: the same settings give bit-identical files (except
 for DNG metadata a library may stamp; pidng stamps none).
 """
@@ -44,11 +50,18 @@ from recon.io.images import linear_to_srgb, write_exr, write_mask, write_png
 from recon.io.mesh import write_obj
 from recon.synth.bake import bake, unwrap
 from recon.synth.materials import MaterialFields
-from recon.synth.shapes import OBJECT_KINDS, make_object
+from recon.support import save_plane
+from recon.synth.shapes import OBJECT_KINDS, flatten_base, make_object
 
 log = logging.getLogger(__name__)
 
 FORMATS = ("dng", "exr", "png16", "png8")
+SCENES = ("void", "tabletop")
+TABLETOP_FIELDS = ("scene", "elevation_range", "rings", "distance_jitter", "aim_jitter", "roll_jitter",
+                   "table_half_size", "table_texture_size", "background", "background_distance",
+                   "base_cut", "marker_square")
+"""Settings of the tabletop scene only; a void capture's gt/synth.json leaves them out (so the
+files of void captures made before they existed regenerate bit-identically)."""
 _EXT = {"dng": ".dng", "exr": ".exr", "png16": ".png", "png8": ".png"}
 
 
@@ -109,6 +122,33 @@ class SynthSettings:
     scale : float
         Scene scale: the object, the camera distances and the ground truth are multiplied by it
         and the light intensity by ``scale**2``, so the photos are the same at every scale.
+    scene : str
+        ``void`` (the object alone, cameras all around) or ``tabletop`` (on a table, cameras
+        above it; the settings below apply to it, see :mod:`recon.synth.tabletop`).
+    elevation_range : (float, float)
+        Tabletop: camera elevations above the table, degrees (seen from the object's center).
+    rings : int
+        Tabletop: number of hand-held rings of views (spread over ``elevation_range``).
+    distance_jitter : float
+        Tabletop: per-view camera distances vary by this fraction around each ring's.
+    aim_jitter : float
+        Tabletop: standard deviation of the aim point around the object's center (object units).
+    roll_jitter : float
+        Tabletop: standard deviation of the roll around the optical axis, degrees.
+    table_half_size : float
+        Tabletop: the table is a square of side 2 * this (object units, the object spans ~1.9).
+    table_texture_size : int
+        Tabletop: texels along each side of the table's texture.
+    background : float
+        Tabletop: albedo of a far backdrop lit by the flash (0: black beyond the table).
+    background_distance : float
+        Tabletop: radius of that backdrop around the object.
+    base_cut : float
+        Tabletop: the object is cut flat this fraction of its height above its lowest point
+        (the mug has a flat base already).
+    marker_square : float
+        Tabletop: side of the squares of a ChArUco mat printed on the table under the object
+        (object units; 0: no mat).
     """
 
     object: str = "blob"
@@ -134,9 +174,46 @@ class SynthSettings:
     specular: float | None = None
     roughness: float | None = None
     scale: float = 1.0
+    scene: str = "void"
+    elevation_range: tuple = (15.0, 60.0)
+    rings: int = 3
+    distance_jitter: float = 0.08
+    aim_jitter: float = 0.06
+    roll_jitter: float = 4.0
+    table_half_size: float = 4.0
+    table_texture_size: int = 2048
+    background: float = 0.3
+    background_distance: float = 30.0
+    base_cut: float = 0.08
+    marker_square: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "view_z_range", tuple(float(z) for z in self.view_z_range))
+        object.__setattr__(self, "elevation_range", tuple(float(z) for z in self.elevation_range))
+        if self.scene not in SCENES:
+            raise SynthError(f"scene={self.scene!r}: choose one of {SCENES}")
+        e0, e1 = self.elevation_range
+        if not 0.0 < e0 <= e1 < 90.0:
+            raise SynthError(f"elevation_range={self.elevation_range}: need 0 < low <= high < 90 degrees "
+                             "(cameras above the table)")
+        if self.rings < 1:
+            raise SynthError(f"rings={self.rings}: need at least 1 ring of views")
+        if not 0 <= self.distance_jitter < 0.5 or self.aim_jitter < 0 or self.roll_jitter < 0:
+            raise SynthError("distance_jitter must be in [0, 0.5), aim_jitter and roll_jitter >= 0")
+        if self.table_half_size <= 2.0:
+            raise SynthError(f"table_half_size={self.table_half_size}: the table must be larger than the "
+                             "object (> 2)")
+        if not 16 <= self.table_texture_size <= 8192:
+            raise SynthError(f"table_texture_size={self.table_texture_size}: use 16 to 8192")
+        if not 0.0 <= self.background <= 1.0:
+            raise SynthError(f"background={self.background}: an albedo in [0, 1] (0: none)")
+        if self.scene == "tabletop" and self.background > 0 and self.background_distance <= self.distance * 1.5:
+            raise SynthError(f"background_distance={self.background_distance}: the backdrop must be far "
+                             f"behind the cameras (> 1.5 x distance = {1.5 * self.distance})")
+        if not 0.0 <= self.base_cut < 0.5:
+            raise SynthError(f"base_cut={self.base_cut}: use a fraction of the height in [0, 0.5)")
+        if self.marker_square < 0:
+            raise SynthError(f"marker_square={self.marker_square}: a length >= 0 (0: no mat)")
         if self.object not in OBJECT_KINDS:
             raise SynthError(f"object={self.object!r}: choose one of {OBJECT_KINDS}")
         if self.format not in FORMATS:
@@ -194,6 +271,11 @@ PRESETS: dict[str, SynthSettings] = {
     "blob": SynthSettings(object="blob"),
     "torus": SynthSettings(object="torus"),
     "smooth": SynthSettings(object="smooth"),
+    # tabletop captures: the object fills ~40% of the image width, the table around it
+    "tabletop": SynthSettings(scene="tabletop", fov=50.0, distance=5.0),
+    # tabletop benchmark captures (bench/tabletop.py): 48 views on three hand-held rings
+    "tabletop-blob": SynthSettings(object="blob", scene="tabletop", fov=50.0, distance=5.0, n_views=48),
+    "tabletop-mug": SynthSettings(object="mug", scene="tabletop", fov=50.0, distance=5.0, n_views=48, seed=1),
 }
 
 
@@ -260,9 +342,12 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
 
     out_dir = Path(out_dir)
     s = settings
+    tabletop = s.scene == "tabletop"
     sensor = SensorModel()
-    log.info("synth: %s object, level %d", s.object, s.mesh_level)
+    log.info("synth: %s object, level %d, %s scene", s.object, s.mesh_level, s.scene)
     mesh = make_object(s.object, s.mesh_level, s.seed)
+    if tabletop and s.object != "mug":  # the mug stands on its own flat base
+        mesh = flatten_base(mesh, s.base_cut)
     mesh = unwrap(mesh, resolution=s.texture_size, padding=3)
     fields = MaterialFields(seed=s.seed, frequency=s.texture_frequency, albedo=s.albedo,
                             specular=s.specular, roughness=s.roughness)
@@ -271,7 +356,23 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
         mesh = dataclasses.replace(mesh, v_pos=mesh.v_pos * s.scale)
     roughness = np.clip(roughness, R_MIN, 1.0)
     textures = {"diffuse": diffuse, "specular": specular, "roughness": roughness}
-    cams = make_cameras(s)
+    scene, marker = None, None
+    if tabletop:
+        from recon.synth.tabletop import TabletopScene, add_marker_mat, table_texture, tabletop_cameras
+
+        log.info("synth: table texture %d^2", s.table_texture_size)
+        table_rgb = table_texture(s.table_texture_size, s.table_half_size, s.seed)
+        if s.marker_square > 0:
+            marker = add_marker_mat(table_rgb, s.table_half_size, s.marker_square)
+            marker = {**marker, "square": marker["square"] * s.scale, "marker": marker["marker"] * s.scale,
+                      "top_left": [v * s.scale for v in marker["top_left"]],
+                      "size": [v * s.scale for v in marker["size"]]}
+        lo, hi = mesh.bbox()
+        scene = TabletopScene(mesh, textures, float(lo[2]), s.table_half_size * s.scale, table_rgb,
+                              s.background, s.background_distance * s.scale)
+        cams = tabletop_cameras(s, target=0.5 * (lo + hi) / s.scale)
+    else:
+        cams = make_cameras(s)
     exposures = view_exposures(s, sensor)
     h_values = [exposure_value(e["exposure_time"], e["iso"], e["f_number"]) for e in exposures]
     h_ref = float(np.median(h_values))
@@ -285,9 +386,14 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
         (tmp / "gt").mkdir()
         for i, cam in enumerate(cams.frames):
             log.info("synth: view %d/%d", i + 1, len(cams))
-            rgba = render_reference(mesh, textures, cam, cams.light_intensity, s.spp,
-                                    seed=s.seed * 100003 + i, alpha=True)
-            rgb = np.ascontiguousarray(rgba[:, :, :3])
+            if scene is not None:
+                rgb = scene.render(cam, cams.light_intensity, s.spp, seed=s.seed * 100003 + i)
+                coverage = scene.object_coverage(cam, s.spp, seed=s.seed * 100003 + i)
+                write_mask(tmp / "gt" / "masks" / f"{cam.stem}.png", coverage > 0.5)
+            else:
+                rgba = render_reference(mesh, textures, cam, cams.light_intensity, s.spp,
+                                        seed=s.seed * 100003 + i, alpha=True)
+                rgb, coverage = np.ascontiguousarray(rgba[:, :, :3]), rgba[:, :, 3]
             path = tmp / cam.image
             if s.format == "dng":
                 from recon.io.dng import write_dng
@@ -304,7 +410,7 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
                 else:
                     write_png(path, linear_to_srgb(photo), bits=16 if s.format == "png16" else 8)
             if s.write_masks:
-                write_mask(tmp / "masks" / f"{cam.stem}.png", rgba[:, :, 3] > 0.5)
+                write_mask(tmp / "masks" / f"{cam.stem}.png", coverage > 0.5)
             if s.write_gt_linear:
                 write_exr(tmp / "gt" / "linear" / f"{cam.stem}.exr", rgb * np.float32(linear_scale))
         # the light intensity that fits the linearized images (scale 1 by construction)
@@ -318,10 +424,13 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
         write_exr(tmp / "gt" / "diffuse.exr", diffuse)
         write_exr(tmp / "gt" / "specular.exr", specular)
         write_exr(tmp / "gt" / "roughness.exr", roughness)
+        if scene is not None:
+            save_plane(tmp / "gt" / "plane.json", scene.plane, table_half_size=s.table_half_size * s.scale,
+                       marker_mat=marker)
         meta = {
             "generator": "recon.synth.capture.make_capture",
             "command": command,
-            "settings": dataclasses.asdict(s),
+            "settings": recorded_settings(s),
             "linear_scale": linear_scale,
             "exposure_reference": h_ref,
             "sensor": dataclasses.asdict(sensor) if s.format == "dng" else None,
@@ -336,12 +445,27 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
     return out_dir
 
 
+def recorded_settings(s: SynthSettings) -> dict:
+    """The settings as gt/synth.json records them (a void capture leaves out TABLETOP_FIELDS)."""
+    d = dataclasses.asdict(s)
+    if s.scene == "void":
+        d = {k: v for k, v in d.items() if k not in TABLETOP_FIELDS}
+    return d
+
+
 def _readme(s: SynthSettings, linear_scale: float, command: str | None) -> str:
     regen = f"\nRegenerate (bit-identical on the same machine): `{command}`\n" if command else ""
+    tabletop = "" if s.scene == "void" else """
+Tabletop scene: the object stands on a textured table (and in front of a dim backdrop) that
+are in every photo; everything in gt/ describes the object alone:
+- `masks/<stem>.png`: the object's true silhouettes (pixel coverage of the object > 0.5).
+- `plane.json`: the table, `normal . x + offset = 0` (normal up, towards the cameras), in the
+  frame of `cameras.json`; `marker_mat` describes the printed ChArUco mat when there is one.
+"""
     return f"""# Ground truth of a synthetic capture (never read by the pipeline)
 
 Made by `recon.synth.capture.make_capture` (settings in `synth.json`), object `{s.object}`.
-{regen}
+{regen}{tabletop}
 - `mesh.obj`: the true mesh in the frame of `gt/cameras.json`, with its UV atlas (OBJ, v up).
 - `diffuse.exr` (RGB), `specular.exr` (1 channel), `roughness.exr` (1 channel): the true maps,
   linear float32, texel (i, j) at u = (j + 0.5)/W, v = 1 - (i + 0.5)/H (DESIGN section 2).

@@ -4,6 +4,8 @@ Examples:
   python -m recon synth captures/demo --preset demo        (the bundled CI capture)
   python -m recon synth /tmp/blob --views 40 --res 256 --format dng --object blob --seed 0
   python -m recon synth /tmp/torus --object torus --no-cameras --masks
+  python -m recon synth /tmp/mug --scene tabletop --object mug --views 24 --res 256 --format exr
+      (the object on a textured table, cameras on hand-held rings above it; gt/masks, gt/plane.json)
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import argparse
 import dataclasses
 import logging
 
-from recon.synth.capture import FORMATS, PRESETS, SynthSettings, make_capture
+from recon.synth.capture import FORMATS, PRESETS, SCENES, SynthSettings, make_capture
 from recon.synth.shapes import OBJECT_KINDS
 
 log = logging.getLogger(__name__)
@@ -40,6 +42,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--specular", type=float, help="constant specular albedo (0 = purely diffuse object)")
     p.add_argument("--roughness", type=float, help="constant roughness instead of the three sectors")
     p.add_argument("--scale", type=float, help="scene scale (object and cameras; light scaled by scale^2)")
+    p.add_argument("--scene", choices=SCENES, help="void (the object alone) or tabletop (on a table)")
+    p.add_argument("--elevations", type=float, nargs=2, dest="elevation_range", metavar=("LOW", "HIGH"),
+                   help="tabletop: camera elevations above the table, degrees")
+    p.add_argument("--rings", type=int, help="tabletop: number of rings of views")
+    p.add_argument("--background", type=float,
+                   help="tabletop: albedo of the far backdrop (0: black beyond the table)")
+    p.add_argument("--table-texture-size", type=int, dest="table_texture_size")
+    p.add_argument("--marker-square", type=float, dest="marker_square",
+                   help="tabletop: print a ChArUco mat with squares of this side under the object")
     p.add_argument("--cameras", dest="write_cameras", action="store_true", default=None,
                    help="write the top-level cameras.json")
     p.add_argument("--no-cameras", dest="write_cameras", action="store_false",
@@ -71,7 +82,9 @@ def command_line(args: argparse.Namespace) -> str:
             "seed": "--seed", "light_intensity": "--light-intensity",
             "exposure_variation": "--exposure-variation", "mesh_level": "--mesh-level",
             "texture_size": "--texture-size", "albedo": "--albedo", "specular": "--specular",
-            "roughness": "--roughness", "scale": "--scale"}
+            "roughness": "--roughness", "scale": "--scale", "scene": "--scene", "rings": "--rings",
+            "background": "--background", "table_texture_size": "--table-texture-size",
+            "marker_square": "--marker-square"}
     flags = {"write_cameras": "cameras", "write_masks": "masks", "write_gt_linear": "gt-linear",
              "noise": "noise"}
     parts = ["python -m recon synth", str(args.out_dir)]
@@ -80,6 +93,8 @@ def command_line(args: argparse.Namespace) -> str:
     for key, flag in opts.items():
         if getattr(s, key) != getattr(base, key) or (key == "height" and s.width != base.width):
             parts += [flag, str(getattr(s, key))]
+    if s.elevation_range != base.elevation_range:
+        parts += ["--elevations", *map(str, s.elevation_range)]
     for key, name in flags.items():
         if getattr(s, key) != getattr(base, key):
             parts.append(f"--{name}" if getattr(s, key) else f"--no-{name}")

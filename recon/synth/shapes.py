@@ -8,8 +8,15 @@ and inside the cube [-0.95, 0.95]^3 (so inside DESIGN's [-1, 1]^3 object frame):
 - ``torus``: a genus-1 ring with bumps, ridges around the tube and a spiral groove; its
   inner rim gives self-occlusion edges in front of lit surfaces.
 - ``smooth``: the blob's low-frequency shape only (no bumps, no grooves).
+- ``mug``: a cup with a flat base, an open cavity and a handle (genus 1), standing along +z:
+  a concavity that no visual hull carves and a through-hole beside the body; made as the zero
+  level set of a signed distance function (marching cubes, then isotropic remeshing).
 
-Shapes are functions of ``seed`` alone (numpy float64, no threads): bit-identical everywhere.
+:func:`flatten_base` cuts an object flat at the bottom so that it can stand on a table
+(tabletop captures, :mod:`recon.synth.tabletop`).
+
+Shapes are functions of ``seed`` alone (numpy float64, no threads; the mug also goes through
+open3d's marching cubes and pymeshlab's remeshing, both deterministic).
 """
 
 from __future__ import annotations
@@ -19,7 +26,7 @@ import numpy as np
 from recon.io.mesh import Mesh
 from recon.synth.noise import fbm
 
-OBJECT_KINDS = ("blob", "torus", "smooth")
+OBJECT_KINDS = ("blob", "torus", "smooth", "mug")
 EXTENT = 0.95
 """Largest absolute coordinate of a generated object."""
 
@@ -158,8 +165,93 @@ def torus(level: int = 6, seed: int = 0) -> Mesh:
     return _fit_extent(Mesh(v @ rot.T, mesh.t_pos_idx))
 
 
+def _smooth_min(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
+    """Polynomial smooth minimum of two distances (a fillet of radius about ``k``)."""
+    h = np.clip(0.5 + 0.5 * (b - a) / k, 0.0, 1.0)
+    return b * (1.0 - h) + a * h - k * h * (1.0 - h)
+
+
+def _rounded_cylinder(radial: np.ndarray, z: np.ndarray, radius: float, z0: float, z1: float,
+                      rounding: float) -> np.ndarray:
+    """Signed distance (negative inside) of a cylinder ``r <= radius, z0 <= z <= z1``, edges rounded."""
+    dr = radial - (radius - rounding)
+    dz = np.abs(z - 0.5 * (z0 + z1)) - (0.5 * (z1 - z0) - rounding)
+    return (np.minimum(np.maximum(dr, dz), 0.0)
+            + np.hypot(np.maximum(dr, 0.0), np.maximum(dz, 0.0)) - rounding)
+
+
+def mug_sdf(points: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Signed distance (negative inside) of the ``mug`` at ``points (..., 3)``, before fitting.
+
+    A rounded cylinder (outer radius ~0.62, height ~1.5) minus a cavity open at the top, and a
+    handle (a torus in the xz plane) joined to the wall by a smooth union; ``seed`` varies the
+    proportions a little.
+    """
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x3C6]))
+    r_out = 0.62 * rng.uniform(0.92, 1.08)
+    height = 1.5 * rng.uniform(0.9, 1.05)
+    wall, bottom, rounding = 0.08, 0.12, 0.03
+    x, y, z = points[..., 0], points[..., 1], points[..., 2]
+    radial = np.hypot(x, y)
+    body = _rounded_cylinder(radial, z, r_out, -height / 2, height / 2, rounding)
+    cavity = _rounded_cylinder(radial, z, r_out - wall, -height / 2 + bottom, height, rounding)
+    # the handle: a torus around the y axis beside the wall, cut off inside the wall
+    hx, hz = x - (r_out + 0.02), z - height * rng.uniform(0.0, 0.06)
+    handle = np.hypot(np.hypot(hx, hz) - 0.40 * height / 1.5, y) - 0.085
+    handle = np.maximum(handle, (r_out - 0.5 * wall) - x)
+    return np.maximum(_smooth_min(body, handle, 0.06), -cavity)
+
+
+def mug(level: int = 6, seed: int = 0) -> Mesh:
+    """The ``mug``: marching cubes of :func:`mug_sdf`, remeshed to about ``20 * 4**level`` faces."""
+    import open3d as o3d
+    import pymeshlab
+
+    n = int(np.clip(24 * 2 ** (level / 2), 64, 192))  # grid nodes per axis
+    half = 1.25
+    g = np.linspace(-half, half, n)
+    step = g[1] - g[0]
+    grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1)
+    inside = -mug_sdf(grid, seed).astype(np.float32)  # positive inside
+    iso = o3d.t.geometry.TriangleMesh.create_isosurfaces(o3d.core.Tensor(inside), [0.0])
+    v = iso.vertex.positions.numpy().astype(np.float64)[:, ::-1] * step - half  # (k, j, i) -> xyz
+    f = iso.triangle.indices.numpy().astype(np.int64)
+    target = 20 * 4**level
+    edge = float(np.sqrt(4.0 * Mesh(v, f).area() / (np.sqrt(3.0) * target)))
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(v, f.astype(np.int32)))
+    ms.meshing_remove_duplicate_vertices()
+    ms.meshing_isotropic_explicit_remeshing(iterations=6, targetlen=pymeshlab.PureValue(edge))
+    ms.meshing_remove_unreferenced_vertices()
+    m = ms.current_mesh()
+    out = Mesh(m.vertex_matrix(), m.face_matrix())
+    if out.volume() < 0:
+        out = Mesh(out.v_pos, out.t_pos_idx[:, ::-1])
+    return _fit_extent(out)
+
+
+def flatten_base(mesh: Mesh, cut: float) -> Mesh:
+    """The object cut flat at ``cut`` (a fraction of its height) above its lowest point.
+
+    Vertices below the cut move straight up onto the cut plane, so the mesh stays closed
+    and keeps its faces (the base is flat and lies on the plane); the result is re-centered and
+    re-scaled to fill :data:`EXTENT`. ``cut = 0`` returns the mesh unchanged.
+    """
+    if not 0.0 <= cut < 0.5:
+        raise ValueError(f"flatten_base: cut must be in [0, 0.5), got {cut}")
+    if cut == 0.0:
+        return mesh
+    lo, hi = mesh.bbox()
+    z_cut = lo[2] + cut * (hi[2] - lo[2])
+    v = mesh.v_pos.copy()
+    v[:, 2] = np.maximum(v[:, 2], z_cut)
+    return _fit_extent(Mesh(v, mesh.t_pos_idx))
+
+
 def make_object(kind: str, level: int = 6, seed: int = 0) -> Mesh:
     """One of :data:`OBJECT_KINDS` (no UVs yet)."""
+    if kind == "mug":
+        return mug(level, seed)
     if kind == "blob":
         return blob(level, seed, detail=True)
     if kind == "smooth":

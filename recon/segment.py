@@ -1,0 +1,694 @@
+"""Masks of an object standing on a table: the object apart from the table and the background.
+
+Flash-falloff masks (:mod:`recon.masks`) take everything the flash lights; on a table that is
+the object and the table around it in one piece. Here the geometry of the capture separates
+them, with no learned weights:
+
+1. **The support plane** (:func:`recon.support.fit_support_plane`) by RANSAC in sparse 3D points:
+   the SfM points (``poses/points.ply``), or, with known cameras, points triangulated here from
+   SIFT matches between neighbouring views (:func:`triangulate_points`).
+2. **Plane consistency** (:func:`plane_consistency`), per view i: every pixel's ray meets the
+   plane at P. If the pixel sees the table, the neighbouring views j see the same table texture
+   at P: view j warped into view i by the homography the plane induces
+   (:func:`plane_homography`), its flash shading ``cos / r^2`` at P swapped for view i's and one
+   gain per view pair (exposure) removed, matches view i there. If it sees the object (which
+   stands above the plane), view j sees something else at P. The relative difference, averaged
+   over a small window that follows the image's edges (guided filter), and its minimum over
+   the neighbours (a table point that the object hides from one neighbour is seen by another)
+   give C_i: ~0.1-0.3 on the table, >~1 on the object. Dark pixels (far table, dim background)
+   are consistent by construction (a noise floor), which keeps the unlit background out.
+3. **A visual hull above the plane** (:func:`carve`) from the liberal masks C_i > ``carve_threshold``,
+   tolerant of a few views' misses, restricted to what stands on the plane near the point the
+   cameras aim at: the object's 3D region. Its projection bounds each view's mask (the seed
+   region of step 4): a blob of a far background or a specular patch on the table that no 3D
+   object explains is never object.
+4. **Per view a graph cut** (:func:`graph_cut`, scipy's max-flow): data costs from C_i (logistic
+   around ``threshold``), sure background outside the dilated hull projection, and a
+   contrast-sensitive smoothness term on the photo, so the outline snaps to the image edge
+   between object and table (where the object touches the table, the plane test alone cannot
+   tell them apart: its points there lie on the plane).
+5. **Cross-check across views**: a second hull from the cut masks; each mask keeps only what
+   lies inside (a pixel of margin) its projection, and small holes are filled as in
+   :mod:`recon.masks` (large ones, like a mug's handle, stay open).
+
+Given masks (the capture's ``masks/``) still win, view by view. A capture without a support
+plane (a void capture, a hand-held object) keeps the flash-falloff masks of :mod:`recon.masks`,
+with a note in the log. A view whose object cannot be separated from the table (an empty mask,
+a mask that fills its hull projection's whole box, or one the other views contradict) is named
+in a :class:`SegmentError` with what to try.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from recon.io.atomic import atomic_dir
+from recon.io.cameras import Camera, CameraSet, load_cameras
+from recon.io.images import ImageError, linear_to_srgb, read_exr, read_mask, write_mask
+from recon.masks import MaskError, MaskSettings, derive_mask
+from recon.support import PlaneSettings, SupportPlane, aim_point, fit_support_plane, save_plane, scene_scale
+
+log = logging.getLogger(__name__)
+
+
+class SegmentError(MaskError):
+    """Masks that cannot be separated from the table; the message names the views and what to try."""
+
+
+@dataclass(frozen=True)
+class SegmentSettings:
+    """Settings of the tabletop masks (:mod:`recon.segment`). Lengths in pixels are at the
+    photos' own size; 3D lengths are fractions of the scene scale (median camera distance)."""
+
+    neighbours: int = 6  # views compared with each view (nearest viewing directions)
+    min_angle: float = 4.0  # degrees: neighbours closer than this give too little parallax
+    max_angle: float = 70.0  # degrees: ... farther than this see too different a table
+    floor: float = 0.03  # noise floor of the relative difference, x the view's 90th percentile
+    window: int = 2  # radius (px) of the guided-filter window that averages the differences
+    threshold: float = 0.7  # C above this: object (the logistic's middle)
+    softness: float = 0.15  # the logistic's width
+    carve_threshold: float = 0.5  # liberal masks for the hull
+    carve_tolerance: float = 0.12  # a voxel survives this share of views that miss it
+    hull_resolution: int = 96  # voxels along the longest side of the fine hull
+    hull_margin_px: int = 6  # the mask stays inside the hull projection dilated by this
+    smoothness: float = 2.0  # weight of the contrast-sensitive pairwise term
+    max_hole_fraction: float = 0.02  # holes smaller than this share of the object are filled
+    min_views: int = 4  # fewer views: no tabletop masks
+    plane: PlaneSettings = PlaneSettings()
+    triangulate_pairs: int = 3  # known cameras: match each view with this many neighbours
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.neighbours < 1 or self.min_views < 2:
+            raise ValueError("neighbours must be >= 1 and min_views >= 2")
+        if not 0 <= self.min_angle < self.max_angle <= 180:
+            raise ValueError(f"need 0 <= min_angle < max_angle <= 180, got {self.min_angle}, {self.max_angle}")
+        if self.floor <= 0 or self.softness <= 0 or self.threshold <= 0 or self.carve_threshold <= 0:
+            raise ValueError("floor, softness, threshold and carve_threshold must be > 0")
+        if not 0 <= self.carve_tolerance < 0.5:
+            raise ValueError(f"carve_tolerance must be in [0, 0.5), got {self.carve_tolerance}")
+        if self.hull_resolution < 16:
+            raise ValueError(f"hull_resolution must be >= 16, got {self.hull_resolution}")
+        if isinstance(self.plane, dict):
+            object.__setattr__(self, "plane", PlaneSettings(**self.plane))
+
+
+# ---------------------------------------------------------------------------------------------
+# Geometry helpers
+# ---------------------------------------------------------------------------------------------
+_HALF = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+"""Pixel coordinates of DESIGN (centers at j + 0.5) from OpenCV's (centers at integers)."""
+
+
+def plane_homography(cam_i: Camera, cam_j: Camera, plane: SupportPlane) -> np.ndarray:
+    """(3, 3) homography taking OpenCV pixel coordinates of view i (centers at integers) to
+    those of view j for points on ``plane``: x_j ~ H x_i.
+
+    With the plane n_c . X_c + d_c = 0 in camera i's coordinates and X_j = R X_c + t the
+    relative motion, H = K_j (R - t n_c^T / d_c) K_i^-1.
+    """
+    Ri, ti = cam_i.world_to_camera[:3, :3], cam_i.world_to_camera[:3, 3]
+    Rj, tj = cam_j.world_to_camera[:3, :3], cam_j.world_to_camera[:3, 3]
+    n_c = Ri @ plane.normal
+    d_c = plane.offset - n_c @ ti
+    R = Rj @ Ri.T
+    t = tj - R @ ti
+    H = cam_j.K @ (R - np.outer(t, n_c) / d_c) @ np.linalg.inv(cam_i.K)
+    return np.linalg.inv(_HALF) @ H @ _HALF
+
+
+def pixel_rays(cam: Camera) -> np.ndarray:
+    """(H, W, 3) world directions (not normalized) of the rays through the pixel centers."""
+    j, i = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+    pix = np.stack([j, i, np.ones_like(j)], -1)
+    return pix @ (cam.camera_to_world[:3, :3] @ np.linalg.inv(cam.K)).T
+
+
+def plane_points(cam: Camera, plane: SupportPlane) -> tuple[np.ndarray, np.ndarray]:
+    """Where each pixel's ray meets the plane: ``P (H, W, 3)`` and ``hit (H, W)`` bool (in front)."""
+    d = pixel_rays(cam)
+    t = plane.ray_hit(cam.center, d)
+    hit = np.isfinite(t) & (t > 0)
+    return cam.center + np.where(hit, t, 0.0)[..., None] * d, hit
+
+
+def flash_shading(center: np.ndarray, points: np.ndarray, plane: SupportPlane) -> np.ndarray:
+    """``cos / r^2`` of the flash at ``center`` on plane points ``(..., 3)``: height / r^3."""
+    r = np.linalg.norm(points - center, axis=-1)
+    return plane.height(center) / np.maximum(r, 1e-12) ** 3
+
+
+def neighbours(cams: CameraSet, settings: SegmentSettings) -> list[list[int]]:
+    """For each view the indices of its ``settings.neighbours`` nearest views by viewing
+    direction, between ``min_angle`` and ``max_angle`` apart."""
+    z = np.stack([c.camera_to_world[:3, 2] for c in cams])
+    ang = np.degrees(np.arccos(np.clip(z @ z.T, -1.0, 1.0)))
+    out = []
+    for i in range(len(z)):
+        order = [j for j in np.argsort(ang[i], kind="stable")
+                 if j != i and settings.min_angle <= ang[i, j] <= settings.max_angle]
+        out.append(order[: settings.neighbours])
+    return out
+
+
+def display_image(rgb_linear: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 sRGB of a linear image scaled by its 99.5th percentile (for edges)."""
+    top = max(float(np.percentile(rgb_linear, 99.5)), 1e-12)
+    return (np.clip(linear_to_srgb(np.clip(rgb_linear / top, 0.0, 1.0)), 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+# ---------------------------------------------------------------------------------------------
+# Step 2: plane consistency
+# ---------------------------------------------------------------------------------------------
+def plane_consistency(images: list[np.ndarray], cams: CameraSet, plane: SupportPlane, i: int,
+                      nbrs: list[int], settings: SegmentSettings = SegmentSettings(),
+                      guide: np.ndarray | None = None) -> np.ndarray:
+    """C_i (H, W) float32 of view ``i`` (module docstring, step 2); inf where no neighbour sees
+    the pixel's plane point (or the ray misses the plane)."""
+    import cv2
+
+    ci = cams.frames[i]
+    L_i = np.nan_to_num(np.maximum(images[i][:, :, :3], 0.0)).astype(np.float32)
+    P, hit = plane_points(ci, plane)
+    E_i = flash_shading(ci.center, P, plane)
+    floor = settings.floor * max(float(np.percentile(L_i.mean(-1), 90)), 1e-12)
+    if guide is None:
+        guide = display_image(L_i)
+    eps = 1e-3 * 255.0**2
+    best = np.full(L_i.shape[:2], np.inf, np.float32)
+    flat = P.reshape(-1, 3)
+    for j in nbrs:
+        cj = cams.frames[j]
+        H = plane_homography(ci, cj, plane)
+        L_j = cv2.warpPerspective(np.nan_to_num(np.maximum(images[j][:, :, :3], 0.0)).astype(np.float32), H,
+                                  (ci.width, ci.height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        xy, z = cj.project(flat)
+        xy, z = xy.reshape(P.shape[:2] + (2,)), z.reshape(P.shape[:2])
+        seen = hit & (z > 0) & (xy[..., 0] >= 1) & (xy[..., 0] <= cj.width - 1) \
+            & (xy[..., 1] >= 1) & (xy[..., 1] <= cj.height - 1)
+        if seen.sum() < 100:
+            continue
+        E_j = flash_shading(cj.center, P, plane)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pred = L_j * np.where(seen, E_i / E_j, 0.0)[..., None].astype(np.float32)
+        bright = seen & (L_i.mean(-1) > floor) & (pred.mean(-1) > floor)
+        if bright.sum() >= 100:  # one gain per pair (exposure, light): the median log ratio
+            r = np.log(L_i[bright] + 1e-12) - np.log(pred[bright] + 1e-12)
+            pred *= np.exp(np.median(r, axis=0)).astype(np.float32)
+        D = (np.abs(L_i - pred) / (floor + 0.5 * (L_i + pred))).sum(-1)
+        D = np.where(seen, D, 0.0).astype(np.float32)
+        # average over a window that follows the photo's edges; unseen pixels do not count
+        w = seen.astype(np.float32)
+        num = cv2.ximgproc.guidedFilter(guide, D, settings.window, eps)
+        den = cv2.ximgproc.guidedFilter(guide, w, settings.window, eps)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            Dm = np.where(seen & (den > 0.3), num / np.maximum(den, 1e-6), np.inf)
+        best = np.minimum(best, Dm.astype(np.float32))
+    return best
+
+
+# ---------------------------------------------------------------------------------------------
+# Step 3: a tolerant visual hull above the plane
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Hull:
+    """A carved hull: occupied voxel centers ``points (N, 3)``, the voxel size ``step`` and the
+    ``surface (M, 3)`` voxels (occupied, with an empty 6-neighbour): their footprints cover the
+    hull's silhouette in any view."""
+
+    points: np.ndarray
+    step: float
+    surface: np.ndarray
+
+    def bbox(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.points.min(0) - self.step, self.points.max(0) + self.step
+
+    def project(self, cam: Camera) -> np.ndarray:
+        """(H, W) bool: the hull's silhouette in ``cam`` (voxels splatted at their footprint)."""
+        import cv2
+
+        xy, z = cam.project(self.surface)
+        front = z > 1e-9
+        out = np.zeros((cam.height, cam.width), np.uint8)
+        if not front.any():
+            return out.astype(bool)
+        xy, z = xy[front], z[front]
+        f = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
+        radius = 0.5 * np.sqrt(3.0) * self.step * f / z  # half the voxel's diagonal, pixels
+        for r in np.unique(np.clip(np.ceil(radius), 1, 64).astype(int)):
+            sel = np.clip(np.ceil(radius), 1, 64).astype(int) == r
+            layer = np.zeros_like(out)
+            ij = np.floor(xy[sel]).astype(int)
+            ok = (ij[:, 0] >= 0) & (ij[:, 0] < cam.width) & (ij[:, 1] >= 0) & (ij[:, 1] < cam.height)
+            layer[ij[ok, 1], ij[ok, 0]] = 1
+            out |= cv2.dilate(layer, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r - 1, 2 * r - 1)))
+        return out.astype(bool)
+
+
+def carve(masks: list[np.ndarray], cams: CameraSet, plane: SupportPlane, lo: np.ndarray, hi: np.ndarray,
+          resolution: int, tolerance: float, seed_point: np.ndarray | None = None) -> Hull | None:
+    """Voxels in the box [lo, hi] above ``plane`` that project inside the masks of all views
+    that see them but ``tolerance`` of them (a view's own misses do not carve), the connected
+    component nearest ``seed_point``. None when nothing survives."""
+    from scipy import ndimage
+
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    step = float(np.max(hi - lo)) / resolution
+    shape = np.maximum(np.ceil((hi - lo) / step).astype(int), 1)
+    axes = [lo[k] + (np.arange(shape[k]) + 0.5) * step for k in range(3)]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    keep = plane.height(pts) > 0.5 * step
+    idx = np.flatnonzero(keep)
+    q = pts[idx].astype(np.float32)
+    seen = np.zeros(len(idx), np.int32)
+    miss = np.zeros(len(idx), np.int32)
+    for m, cam in zip(masks, cams, strict=True):
+        P = (cam.K @ cam.world_to_camera[:3, :]).astype(np.float32)
+        h = q @ P[:, :3].T + P[:, 3]
+        z = h[:, 2]
+        zs = np.where(z > 1e-12, z, np.float32(1.0))
+        j = np.floor(h[:, 0] / zs).astype(np.int64)
+        i = np.floor(h[:, 1] / zs).astype(np.int64)
+        inside = (z > 0) & (j >= 0) & (j < cam.width) & (i >= 0) & (i < cam.height)
+        seen += inside
+        hit = np.zeros(len(idx), bool)
+        hit[inside] = m[i[inside], j[inside]]
+        miss += inside & ~hit
+    ok = (seen >= 2) & (miss <= np.floor(tolerance * seen))
+    occ = np.zeros(len(pts), bool)
+    occ[idx[ok]] = True
+    occ = occ.reshape(shape)
+    labels, n = ndimage.label(occ)
+    if n == 0:
+        return None
+    sizes = ndimage.sum_labels(occ, labels, index=np.arange(1, n + 1))
+    if seed_point is not None and n > 1:
+        # the component nearest the seed, among those of at least 1% of the largest one's size
+        dist = np.linalg.norm(pts - np.asarray(seed_point, float), axis=1).reshape(shape)
+        nearest = ndimage.minimum(dist, labels, index=np.arange(1, n + 1))
+        nearest = np.where(sizes >= 0.01 * sizes.max(), nearest, np.inf)
+        label = 1 + int(np.argmin(nearest))
+    else:
+        label = 1 + int(np.argmax(sizes))
+    occ = labels == label
+    shell = occ & ~ndimage.binary_erosion(occ, border_value=0)
+    return Hull(pts[occ.reshape(-1)], step, pts[shell.reshape(-1)])
+
+
+# ---------------------------------------------------------------------------------------------
+# Step 4: graph cut
+# ---------------------------------------------------------------------------------------------
+def graph_cut(cost_fg: np.ndarray, cost_bg: np.ndarray, guide: np.ndarray, smoothness: float,
+              active: np.ndarray | None = None) -> np.ndarray:
+    """Minimum of sum(cost) + smoothness * sum over 4-neighbours of exp(-|dI|^2 / (2 <|dI|^2>))
+    [labels differ]; returns the (H, W) bool foreground. ``active`` limits the graph to a
+    region (pixels outside it are background). Costs are in units of one pairwise weight."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import breadth_first_order, maximum_flow
+
+    H, W = cost_fg.shape
+    act = np.ones((H, W), bool) if active is None else active.copy()
+    fg = np.zeros((H, W), bool)
+    if not act.any():
+        return fg
+    rows, cols = np.nonzero(act)
+    i0, i1, j0, j1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
+    act = act[i0:i1, j0:j1]
+    g = guide[i0:i1, j0:j1].astype(np.float32)
+    cf, cb = cost_fg[i0:i1, j0:j1], cost_bg[i0:i1, j0:j1]
+    h, w = act.shape
+    dx = ((g[:, 1:] - g[:, :-1]) ** 2).sum(-1)
+    dy = ((g[1:, :] - g[:-1, :]) ** 2).sum(-1)
+    beta = 1.0 / (2.0 * max(float(np.concatenate([dx.ravel(), dy.ravel()]).mean()), 1e-6))
+    scale = 100.0
+    wx = np.rint(scale * smoothness * np.exp(-beta * dx)).astype(np.int64)
+    wy = np.rint(scale * smoothness * np.exp(-beta * dy)).astype(np.int64)
+    n = h * w
+    s, t = n, n + 1
+    idx = np.arange(n).reshape(h, w)
+    # a pixel outside the active region is tied to the background
+    cf = np.where(act, cf, 1e6)
+    cb = np.where(act, cb, 0.0)
+    cap_s = np.rint(scale * np.clip(cb, 0, 1e6)).astype(np.int64)  # cut s->p: p is background
+    cap_t = np.rint(scale * np.clip(cf, 0, 1e6)).astype(np.int64)  # cut p->t: p is foreground
+    r = [np.full(n, s), idx.ravel(), idx[:, :-1].ravel(), idx[:, 1:].ravel(), idx[:-1].ravel(), idx[1:].ravel()]
+    c = [idx.ravel(), np.full(n, t), idx[:, 1:].ravel(), idx[:, :-1].ravel(), idx[1:].ravel(), idx[:-1].ravel()]
+    cap = [cap_s.ravel(), cap_t.ravel(), wx.ravel(), wx.ravel(), wy.ravel(), wy.ravel()]
+    r, c, cap = np.concatenate(r), np.concatenate(c), np.concatenate(cap)
+    keep = cap > 0
+    G = csr_matrix((cap[keep].astype(np.int32), (r[keep], c[keep])), shape=(n + 2, n + 2))
+    flow = maximum_flow(G, s, t).flow
+    resid = (G - flow).tocsr()
+    resid.data = np.maximum(resid.data, 0)
+    resid.eliminate_zeros()
+    reach = breadth_first_order(resid, s, directed=True, return_predecessors=False)
+    side = np.zeros(n + 2, bool)
+    side[reach] = True
+    fg[i0:i1, j0:j1] = side[:n].reshape(h, w) & act
+    return fg
+
+
+def _fill_small_holes(mask: np.ndarray, max_fraction: float) -> np.ndarray:
+    from scipy import ndimage
+
+    holes = ndimage.binary_fill_holes(mask) & ~mask
+    if not holes.any():
+        return mask
+    hl, nh = ndimage.label(holes)
+    sizes = ndimage.sum_labels(holes, hl, index=np.arange(1, nh + 1))
+    small = np.flatnonzero(sizes <= max_fraction * mask.sum()) + 1
+    return mask | np.isin(hl, small)
+
+
+def _components_touching(mask: np.ndarray, region: np.ndarray) -> np.ndarray:
+    from scipy import ndimage
+
+    labels, n = ndimage.label(mask)
+    if n == 0:
+        return mask
+    keep = np.unique(labels[region & mask])
+    return np.isin(labels, keep[keep > 0])
+
+
+def _dilate(mask: np.ndarray, px: int) -> np.ndarray:
+    import cv2
+
+    if px <= 0:
+        return mask
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * px + 1, 2 * px + 1))
+    return cv2.dilate(mask.astype(np.uint8), k).astype(bool)
+
+
+def _erode(mask: np.ndarray, px: int) -> np.ndarray:
+    import cv2
+
+    if px <= 0:
+        return mask
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * px + 1, 2 * px + 1))
+    return cv2.erode(mask.astype(np.uint8), k).astype(bool)
+
+
+# ---------------------------------------------------------------------------------------------
+# The whole method
+# ---------------------------------------------------------------------------------------------
+def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPlane,
+                     settings: SegmentSettings = SegmentSettings()) -> tuple[list[np.ndarray], dict]:
+    """Masks of the object standing on ``plane`` in every view (module docstring, steps 2-5).
+
+    Parameters
+    ----------
+    images : list of (H, W, 3) float linear images, one per camera of ``cams``, pinhole.
+    cams : the cameras (OpenCV axes) in the frame of ``plane``.
+
+    Returns
+    -------
+    masks : list of (H, W) bool
+    info : dict
+        ``views`` (per view: coverage, hull coverage, C statistics), ``hull`` (voxel size,
+        bounding box, height above the plane), ``seconds``.
+
+    Raises
+    ------
+    SegmentError
+        The object cannot be separated from the table (no hull, or views whose masks are empty
+        or fill their whole region); the message names the views and what to try.
+    """
+    t0 = time.perf_counter()
+    n = len(cams)
+    if len(images) != n:
+        raise ValueError(f"segment_tabletop: {len(images)} images for {n} cameras")
+    for img, cam in zip(images, cams, strict=True):
+        if img.shape[:2] != (cam.height, cam.width):
+            raise SegmentError(f"{cam.image}: image is {img.shape[1]}x{img.shape[0]} but its camera is "
+                               f"{cam.width}x{cam.height}")
+    guides = [display_image(np.nan_to_num(np.maximum(im[:, :, :3], 0.0))) for im in images]
+    nbrs = neighbours(cams, settings)
+    C = []
+    for i in range(n):
+        C.append(plane_consistency(images, cams, plane, i, nbrs[i], settings, guides[i]))
+    timings = {"consistency_s": time.perf_counter() - t0}
+
+    # ---- step 3: the hull of the liberal masks, near the aim point, above the plane ----
+    t1 = time.perf_counter()
+    target = aim_point(cams)
+    scale = scene_scale(cams, target)
+    foot = plane.project(target)
+    liberal = [_fill_small_holes((c > settings.carve_threshold) | ~np.isfinite(c), settings.max_hole_fraction)
+               for c in C]
+    half = 0.6 * scale
+    lo = foot - half
+    hi = foot + half
+    hull = carve(liberal, cams, plane, lo, hi, max(32, settings.hull_resolution // 2), settings.carve_tolerance,
+                 seed_point=foot + 0.05 * scale * plane.normal)
+    if hull is None:
+        raise SegmentError(
+            "no object stands on the support plane: no region of the views is inconsistent with the table in "
+            "all of them (views: " + ", ".join(c.stem for c in cams) + "). What to try: check that the object "
+            "is in the middle of every photo, that the table is in focus and textured, or give masks/ in the "
+            "capture")
+    blo, bhi = hull.bbox()
+    pad = 4 * hull.step
+    hull = carve(liberal, cams, plane, blo - pad, bhi + pad, settings.hull_resolution, settings.carve_tolerance,
+                 seed_point=0.5 * (blo + bhi))
+    timings["hull_s"] = time.perf_counter() - t1
+
+    # ---- step 4: graph cut per view inside the hull projection ----
+    t1 = time.perf_counter()
+    masks, views = [], {}
+    for i, cam in enumerate(cams):
+        region = hull.project(cam)
+        active = _dilate(region, settings.hull_margin_px)
+        c = np.where(np.isfinite(C[i]), C[i], settings.threshold)
+        z = np.clip((c - settings.threshold) / settings.softness, -30, 30)
+        cost_fg = np.logaddexp(0.0, -z)  # -log sigmoid(z)
+        cost_bg = np.logaddexp(0.0, z)
+        m = graph_cut(cost_fg, cost_bg, guides[i], settings.smoothness, active)
+        m = _components_touching(m, _erode(region, settings.hull_margin_px))
+        masks.append(m)
+        views[cam.stem] = {"hull_coverage": float(region.mean())}
+    timings["graph_cut_s"] = time.perf_counter() - t1
+
+    # ---- step 5: cross-check with a hull of the cut masks ----
+    t1 = time.perf_counter()
+    blo, bhi = hull.bbox()
+    hull2 = carve(masks, cams, plane, blo - pad, bhi + pad, settings.hull_resolution, settings.carve_tolerance,
+                  seed_point=0.5 * (blo + bhi))
+    bad = []
+    for i, cam in enumerate(cams):
+        m = masks[i]
+        if hull2 is not None:
+            m = m & _dilate(hull2.project(cam), 1)
+        m = _fill_small_holes(m, settings.max_hole_fraction)
+        masks[i] = m
+        v = views[cam.stem]
+        v["coverage"] = float(m.mean())
+        c = C[i][np.isfinite(C[i])]
+        v["consistency_median"] = float(np.median(c)) if c.size else None
+        if not m.any():
+            bad.append(f"{cam.stem}: empty mask")
+        elif m[0].any() and m[-1].any() and m[:, 0].any() and m[:, -1].any():
+            bad.append(f"{cam.stem}: the mask touches all four image borders")
+    timings["cross_check_s"] = time.perf_counter() - t1
+    if bad:
+        raise SegmentError(
+            "the object could not be separated from the table in these views:\n  " + "\n  ".join(bad)
+            + "\nWhat to try: keep the whole object inside every photo with table around it, photograph from "
+            "15-60 degrees above the table, use a textured table or a printed mat, or give masks/<stem>.png "
+            "for these views in the capture")
+    hb_lo, hb_hi = (hull2 or hull).bbox()
+    corners = np.array([[x, y, z] for x in (hb_lo[0], hb_hi[0]) for y in (hb_lo[1], hb_hi[1])
+                        for z in (hb_lo[2], hb_hi[2])])
+    info = {"views": views, "neighbours": {cams.frames[i].stem: [cams.frames[j].stem for j in nbrs[i]]
+                                           for i in range(n)},
+            "hull": {"step": (hull2 or hull).step, "voxels": int(len((hull2 or hull).points)),
+                     "bbox_lo": hb_lo.tolist(), "bbox_hi": hb_hi.tolist(),
+                     "height": float(plane.height(corners).max())},
+            "timings": {**timings, "total_s": time.perf_counter() - t0}}
+    return masks, info
+
+
+# ---------------------------------------------------------------------------------------------
+# Sparse points from known cameras
+# ---------------------------------------------------------------------------------------------
+def triangulate_points(images: list[np.ndarray], cams: CameraSet, pairs_per_view: int = 3,
+                       max_error_px: float = 1.5, min_angle_deg: float = 1.0) -> np.ndarray:
+    """(N, 3) points triangulated from SIFT matches between neighbouring views with known cameras.
+
+    Each view is matched with its ``pairs_per_view`` nearest views (viewing direction); a match
+    passes Lowe's ratio test (0.8), triangulates in front of both cameras with a reprojection
+    error below ``max_error_px`` in both and a triangulation angle above ``min_angle_deg``.
+    """
+    import cv2
+
+    sift = cv2.SIFT_create(nfeatures=4000, contrastThreshold=0.01)
+    feats = []
+    for img in images:
+        gray = cv2.cvtColor(display_image(np.nan_to_num(np.maximum(img[:, :, :3], 0.0))), cv2.COLOR_RGB2GRAY)
+        kp, desc = sift.detectAndCompute(gray, None)
+        pts = np.array([k.pt for k in kp], np.float64).reshape(-1, 2) + 0.5  # DESIGN pixel coordinates
+        feats.append((pts, desc))
+    z = np.stack([c.camera_to_world[:3, 2] for c in cams])
+    ang = np.degrees(np.arccos(np.clip(z @ z.T, -1.0, 1.0)))
+    pairs = set()
+    for i in range(len(cams)):
+        for j in [j for j in np.argsort(ang[i], kind="stable") if j != i][:pairs_per_view]:
+            pairs.add((min(i, j), max(i, j)))
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    out = []
+    for i, j in sorted(pairs):
+        (pi, di), (pj, dj) = feats[i], feats[j]
+        if di is None or dj is None or len(di) < 8 or len(dj) < 8:
+            continue
+        knn = matcher.knnMatch(di.astype(np.float32), dj.astype(np.float32), k=2)
+        good = [m[0] for m in knn if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
+        if len(good) < 8:
+            continue
+        a = pi[[m.queryIdx for m in good]]
+        b = pj[[m.trainIdx for m in good]]
+        ci, cj = cams.frames[i], cams.frames[j]
+        Pi = ci.K @ ci.world_to_camera[:3, :]
+        Pj = cj.K @ cj.world_to_camera[:3, :]
+        X = cv2.triangulatePoints(Pi, Pj, a.T, b.T)
+        X = (X[:3] / np.where(np.abs(X[3]) > 1e-12, X[3], 1e-12)).T
+        ok = np.ones(len(X), bool)
+        for cam, obs in ((ci, a), (cj, b)):
+            xy, depth = cam.project(X)
+            ok &= (depth > 0) & (np.linalg.norm(xy - obs, axis=1) < max_error_px)
+        ri = X - ci.center
+        rj = X - cj.center
+        cosang = (ri * rj).sum(1) / np.maximum(np.linalg.norm(ri, axis=1) * np.linalg.norm(rj, axis=1), 1e-12)
+        ok &= cosang < np.cos(np.radians(min_angle_deg))
+        out.append(X[ok])
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def read_points_ply(path: str | os.PathLike) -> np.ndarray:
+    """(N, 3) vertex positions of a PLY point cloud (ASCII or binary, e.g. ``poses/points.ply``)."""
+    import open3d as o3d
+
+    pcd = o3d.io.read_point_cloud(str(path))
+    pts = np.asarray(pcd.points, dtype=np.float64)
+    if len(pts) == 0:
+        # open3d skips ASCII files with extra properties in some versions: read them by hand
+        text = Path(path).read_text(errors="replace").splitlines()
+        try:
+            end = text.index("end_header")
+        except ValueError as e:
+            raise SegmentError(f"{path}: not a PLY point cloud") from e
+        rows = [line.split()[:3] for line in text[end + 1:] if line.strip()]
+        pts = np.array(rows, dtype=np.float64).reshape(-1, 3)
+    return pts
+
+
+# ---------------------------------------------------------------------------------------------
+# The stage function
+# ---------------------------------------------------------------------------------------------
+def run_tabletop_masks(
+    image_dir: str | os.PathLike,
+    cameras: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    settings: SegmentSettings = SegmentSettings(),
+    points: str | os.PathLike | None = None,
+    given_dir: str | os.PathLike | None = None,
+    mask_settings: MaskSettings | None = None,
+) -> dict:
+    """Write ``out_dir/<stem>.png`` (object masks), ``out_dir/masks.json`` and, when a support
+    plane is found, ``out_dir/plane.json`` (:mod:`recon.support`, in the frame of ``cameras``).
+
+    Parameters
+    ----------
+    image_dir : the pinhole linear views ``<stem>.exr`` the cameras describe: ``poses/undistorted``
+        after SfM, or the linearize stage's folder when the capture gives cameras.json.
+    cameras : that ``cameras.json``.
+    out_dir : replaced atomically.
+    points : a PLY of sparse points in the frame of ``cameras`` (``poses/points.ply``); without
+        it, points are triangulated from the views (:func:`triangulate_points`).
+    given_dir : the capture's ``masks/``: ``<stem>.png`` there wins over the derived mask.
+    mask_settings : the flash-falloff masks' settings, used when no plane is found.
+
+    Returns
+    -------
+    The summary written to ``masks.json``: per view ``source`` (given | tabletop | derived) and
+    ``coverage``; ``plane`` (found, reason, ...); ``method``; ``segment`` (diagnostics).
+    """
+    t0 = time.perf_counter()
+    mask_settings = MaskSettings() if mask_settings is None else mask_settings
+    image_dir = Path(image_dir)
+    cams = load_cameras(cameras)
+    images = []
+    for cam in cams:
+        path = image_dir / f"{cam.stem}.exr"
+        try:
+            images.append(read_exr(path))
+        except ImageError as e:
+            raise MaskError(f"{e}; rerun the stage that writes {image_dir}") from e
+    given = {}
+    if given_dir is not None:
+        for cam in cams:
+            p = Path(given_dir) / f"{cam.stem}.png"
+            if p.is_file():
+                m = read_mask(p)
+                if m.shape != (cam.height, cam.width):
+                    raise MaskError(f"{p}: mask is {m.shape[1]}x{m.shape[0]} but the image is "
+                                    f"{cam.width}x{cam.height}; give masks the size of the photos")
+                given[cam.stem] = m
+    plane, plane_info = None, {"found": False, "reason": "every view has a given mask"}
+    if len(given) < len(cams):
+        if len(cams) < settings.min_views:
+            plane_info = {"found": False, "reason": f"{len(cams)} views (need >= {settings.min_views})"}
+        else:
+            if points is not None:
+                pts = read_points_ply(points)
+                plane_info_source = f"sparse points {points}"
+            else:
+                pts = triangulate_points(images, cams, settings.triangulate_pairs)
+                plane_info_source = "points triangulated from the views with the known cameras"
+            plane, plane_info = fit_support_plane(pts, cams, settings.plane)
+            plane_info["source"] = plane_info_source
+    masks: dict[str, np.ndarray] = {}
+    views: dict[str, dict] = {}
+    seg_info = None
+    if plane is not None:
+        log.info("support plane found (%s): %s", plane_info["source"], plane_info["reason"])
+        derived, seg_info = segment_tabletop(images, cams, plane, settings)
+        for cam, m in zip(cams, derived, strict=True):
+            masks[cam.stem] = m
+            views[cam.stem] = {"source": "tabletop", **seg_info["views"][cam.stem]}
+        method = "tabletop"
+    else:
+        if len(given) < len(cams):
+            log.info("no support plane (%s): masks from the flash falloff, as for an object in the void "
+                     "(recon.masks)", plane_info.get("reason"))
+        for cam, img in zip(cams, images, strict=True):
+            if cam.stem in given:
+                continue
+            try:
+                m, inf = derive_mask(img, mask_settings)
+            except MaskError as e:
+                raise MaskError(f"no object found in {image_dir / cam.stem}.exr: {e} (or provide "
+                                f"masks/{cam.stem}.png in the capture)") from e
+            masks[cam.stem] = m
+            views[cam.stem] = {"source": "derived", **inf}
+        method = "flash_falloff"
+    for stem, m in given.items():
+        masks[stem] = m
+        views[stem] = {"source": "given", "coverage": float(m.mean())}
+    with atomic_dir(out_dir) as tmp:
+        for cam in cams:
+            write_mask(tmp / f"{cam.stem}.png", masks[cam.stem])
+        if plane is not None:
+            save_plane(tmp / "plane.json", plane, source=plane_info["source"],
+                       object_bbox={"lo": seg_info["hull"]["bbox_lo"], "hi": seg_info["hull"]["bbox_hi"]})
+        summary = {"method": method, "views": {c.stem: views[c.stem] for c in cams}, "plane": plane_info,
+                   "segment": None if seg_info is None else {k: v for k, v in seg_info.items() if k != "views"},
+                   "settings": asdict(settings), "seconds": time.perf_counter() - t0}
+        (tmp / "masks.json").write_text(json.dumps(summary, indent=1, default=float))
+    return summary

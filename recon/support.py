@@ -1,0 +1,256 @@
+"""The support plane: the table (or sheet, or mat) the object stands on.
+
+One convention, used by the synthetic ground truth (``gt/plane.json``) and by every stage that
+finds or uses the plane (``plane.json`` of the masks' tabletop path, :mod:`recon.segment`)::
+
+    n . x + offset = 0,   |n| = 1,   n points from the table towards the cameras ("up")
+
+in the frame of the ``cameras.json`` beside it. :meth:`SupportPlane.height` is the signed
+distance above the plane (positive on the cameras' side).
+
+:func:`fit_support_plane` finds the plane in a cloud of 3D points (SfM points, or points
+triangulated from known cameras): RANSAC over point triples, kept only when (a) the cameras
+all look at it from above (a table is photographed from one side; a void capture's object
+seen from all around is not a table), (b) it holds a good share of the points, and (c) it
+passes below the point the cameras aim at, with points standing above it there (the object).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from recon.io.atomic import atomic_path
+from recon.io.cameras import CameraSet
+
+log = logging.getLogger(__name__)
+
+
+class PlaneError(ValueError):
+    """A plane file that does not follow the convention; the message names the file and the fix."""
+
+
+@dataclass(frozen=True)
+class SupportPlane:
+    """``normal . x + offset = 0``; ``normal (3,)`` unit length, pointing up (to the cameras)."""
+
+    normal: np.ndarray
+    offset: float
+
+    def __post_init__(self):
+        n = np.asarray(self.normal, dtype=np.float64).reshape(3)
+        length = float(np.linalg.norm(n))
+        if not np.isfinite(length) or length < 1e-12 or not np.isfinite(self.offset):
+            raise PlaneError(f"a plane needs a finite nonzero normal and offset, got {self.normal}, {self.offset}")
+        object.__setattr__(self, "normal", n / length)
+        object.__setattr__(self, "offset", float(self.offset) / length)
+
+    @classmethod
+    def through(cls, point, normal) -> "SupportPlane":
+        """The plane through ``point (3,)`` with ``normal (3,)``."""
+        n = np.asarray(normal, dtype=np.float64)
+        n = n / np.linalg.norm(n)
+        return cls(n, -float(n @ np.asarray(point, dtype=np.float64)))
+
+    @property
+    def point(self) -> np.ndarray:
+        """(3,) the plane's point closest to the origin."""
+        return -self.offset * self.normal
+
+    def height(self, points: np.ndarray) -> np.ndarray:
+        """Signed distance of ``points (..., 3)`` above the plane (positive on the normal's side)."""
+        return np.asarray(points, dtype=np.float64) @ self.normal + self.offset
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """``points (..., 3)`` moved along the normal onto the plane."""
+        p = np.asarray(points, dtype=np.float64)
+        return p - self.height(p)[..., None] * self.normal
+
+    def ray_hit(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Ray parameter t of ``origins + t * directions`` on the plane (inf where parallel)."""
+        o = np.asarray(origins, dtype=np.float64)
+        d = np.asarray(directions, dtype=np.float64)
+        denom = d @ self.normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -self.height(o) / denom
+        return np.where(np.abs(denom) > 1e-12, t, np.inf)
+
+    def basis(self) -> np.ndarray:
+        """(3, 3) rows e1, e2, normal: an orthonormal frame with the normal last."""
+        n = self.normal
+        a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        e1 = np.cross(n, a)
+        e1 /= np.linalg.norm(e1)
+        return np.stack([e1, np.cross(n, e1), n])
+
+    def to_dict(self) -> dict:
+        return {"normal": self.normal.tolist(), "offset": self.offset, "point": self.point.tolist(),
+                "convention": "normal . x + offset = 0 in the cameras.json frame; normal points up, "
+                              "towards the cameras"}
+
+
+def save_plane(path: str | os.PathLike, plane: SupportPlane, **extra) -> None:
+    """Write ``plane.json`` atomically (``extra`` keys are stored beside the plane)."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps({**plane.to_dict(), **extra}, indent=1))
+
+
+def load_plane(path: str | os.PathLike) -> SupportPlane:
+    """Read a ``plane.json`` written by :func:`save_plane`."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+        return SupportPlane(np.asarray(data["normal"], dtype=np.float64), float(data["offset"]))
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise PlaneError(f"{path}: not a plane file ({e}); it needs 'normal' (3 numbers) and 'offset'") from e
+
+
+# ---------------------------------------------------------------------------------------------
+# Finding the plane
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PlaneSettings:
+    """How :func:`fit_support_plane` finds the table. Lengths are fractions of the scene scale
+    (the median distance from the cameras to the point they aim at)."""
+
+    inlier_distance: float = 0.006  # a point within this of the plane lies on it
+    min_inlier_fraction: float = 0.2  # the plane holds at least this share of the points ...
+    min_inliers: int = 30  # ... and this many
+    min_camera_elevation: float = 5.0  # degrees: every camera looks down on the plane by this much
+    camera_fraction: float = 0.9  # ... or at least this share of them (a stray view or two)
+    min_object_points: int = 8  # points standing above the plane near the aim point
+    object_height: float = 0.03  # standing above means higher than this
+    object_radius: float = 0.5  # near the aim point: within this horizontal distance
+    iterations: int = 2000
+    seed: int = 0
+
+    def __post_init__(self):
+        if not 0 < self.inlier_distance < 1:
+            raise ValueError(f"inlier_distance must be in (0, 1), got {self.inlier_distance}")
+        if not 0 < self.min_inlier_fraction <= 1 or not 0 < self.camera_fraction <= 1:
+            raise ValueError("min_inlier_fraction and camera_fraction must be in (0, 1]")
+        if self.min_inliers < 3 or self.iterations < 1:
+            raise ValueError("min_inliers must be >= 3 and iterations >= 1")
+
+
+def aim_point(cams: CameraSet) -> np.ndarray:
+    """(3,) the point closest (least squares) to every camera's optical axis."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c in cams:
+        d = c.camera_to_world[:3, 2]
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c.center
+    if np.linalg.cond(A) > 1e8:  # all axes parallel: no common point
+        return np.mean([c.center + c.camera_to_world[:3, 2] for c in cams], axis=0)
+    return np.linalg.solve(A, b)
+
+
+def scene_scale(cams: CameraSet, target: np.ndarray | None = None) -> float:
+    """The median distance from the camera centers to ``target`` (default :func:`aim_point`)."""
+    t = aim_point(cams) if target is None else np.asarray(target, dtype=np.float64)
+    return float(np.median([np.linalg.norm(c.center - t) for c in cams]))
+
+
+def _plane_from(p: np.ndarray) -> tuple[np.ndarray, float] | None:
+    n = np.cross(p[1] - p[0], p[2] - p[0])
+    length = np.linalg.norm(n)
+    if length < 1e-12:
+        return None
+    n = n / length
+    return n, -float(n @ p[0])
+
+
+def _refine(points: np.ndarray) -> tuple[np.ndarray, float]:
+    c = points.mean(0)
+    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
+    n = vt[-1]
+    return n, -float(n @ c)
+
+
+def fit_support_plane(points: np.ndarray, cams: CameraSet,
+                      settings: PlaneSettings = PlaneSettings()) -> tuple[SupportPlane | None, dict]:
+    """The support plane in ``points (N, 3)`` seen by ``cams``, or None with the reason.
+
+    Returns
+    -------
+    plane : SupportPlane or None
+        Normal towards the cameras.
+    info : dict
+        ``found`` (bool), ``reason`` (why not, or what was found), ``inliers``, ``points``,
+        ``object_points`` (standing above it near the aim point), ``scale`` (the scene scale),
+        ``camera_elevation_deg`` (min/median of the cameras' elevation above the plane).
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    target = aim_point(cams)
+    scale = scene_scale(cams, target)
+    centers = np.stack([c.center for c in cams])
+    info: dict = {"found": False, "points": int(len(pts)), "scale": scale}
+    if len(pts) < settings.min_inliers:
+        info["reason"] = f"only {len(pts)} 3D points (need >= {settings.min_inliers})"
+        return None, info
+    tol = settings.inlier_distance * scale
+    rng = np.random.default_rng(settings.seed)
+    sin_min = np.sin(np.radians(settings.min_camera_elevation))
+    best, best_count, rejected = None, 0, {"cameras": 0, "object": 0}
+    triples = rng.integers(0, len(pts), size=(settings.iterations, 3))
+    for tri in triples:
+        plane = _plane_from(pts[tri])
+        if plane is None:
+            continue
+        n, d = plane
+        dist = pts @ n + d
+        count = int(np.count_nonzero(np.abs(dist) < tol))
+        if count <= best_count:
+            continue
+        # the cameras must look down on it (from one side, above it)
+        hc = centers @ n + d
+        if np.median(hc) < 0:
+            n, d, dist, hc = -n, -d, -dist, -hc
+        rel = hc / np.linalg.norm(centers - target, axis=1)
+        if np.mean(rel > sin_min) < settings.camera_fraction:
+            rejected["cameras"] += 1
+            continue
+        best, best_count = (n, d), count
+    if best is None:
+        info["reason"] = ("no plane with the cameras on one side, looking down on it by "
+                          f">= {settings.min_camera_elevation} degrees (a void capture, or views from below)")
+        return None, info
+    n, d = best
+    inl = np.abs(pts @ n + d) < tol
+    n, d = _refine(pts[inl])
+    if (centers @ n + d).mean() < 0:
+        n, d = -n, -d
+    plane = SupportPlane(n, d)
+    h = plane.height(pts)
+    inl = np.abs(h) < tol
+    hc = plane.height(centers)
+    elev = np.degrees(np.arcsin(np.clip(hc / np.linalg.norm(centers - target, axis=1), -1, 1)))
+    foot = plane.project(target)
+    horiz = np.linalg.norm(plane.project(pts) - foot, axis=1)
+    above = (h > settings.object_height * scale) & (horiz < settings.object_radius * scale)
+    info.update({"inliers": int(inl.sum()), "inlier_fraction": float(inl.mean()),
+                 "object_points": int(above.sum()), "aim_height": float(plane.height(target) / scale),
+                 "camera_elevation_deg": {"min": float(elev.min()), "median": float(np.median(elev))}})
+    if inl.sum() < settings.min_inliers or inl.mean() < settings.min_inlier_fraction:
+        info["reason"] = (f"the best plane holds {inl.sum()} of {len(pts)} points ({100 * inl.mean():.0f}%; "
+                          f"need >= {settings.min_inliers} and >= {100 * settings.min_inlier_fraction:.0f}%)")
+        return None, info
+    if plane.height(target) <= 0:
+        info["reason"] = "the cameras aim below the plane: the object is not standing on it"
+        return None, info
+    if above.sum() < settings.min_object_points:
+        info["reason"] = (f"only {above.sum()} points stand above the plane near the point the cameras aim at "
+                          f"(need >= {settings.min_object_points}): nothing stands on it (a hand-held object?)")
+        return None, info
+    info["found"] = True
+    info["reason"] = (f"plane with {inl.sum()} of {len(pts)} points, {above.sum()} points above it near the "
+                      f"aim point, cameras {elev.min():.0f}-{elev.max():.0f} degrees above it")
+    return plane, info

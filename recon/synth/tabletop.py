@@ -1,0 +1,198 @@
+"""Tabletop scenes: the object standing on a large textured table, photographed by hand.
+
+What a person does (DESIGN section 6): puts the object on a table, walks around it with the
+phone 15-60 degrees above the table, the flash lighting the table around the object about as
+brightly as the object itself. The base is never seen. This module makes that scene for
+:func:`recon.synth.capture.make_capture` (``scene="tabletop"``):
+
+- The object (:mod:`recon.synth.shapes`, cut flat at the bottom by ``base_cut`` so it stands)
+  rests on the plane z = z_table (its lowest point); the ground truth (``gt/mesh.obj`` and the
+  maps) is the object alone, and ``gt/plane.json`` (:mod:`recon.support`) records the plane.
+- The table: a square of side ``2 * table_half_size`` with a procedural wood texture
+  (:func:`table_texture`: grain, rings, blotches and knots, features at several scales for
+  SfM), rendered with the same BSDF plugin as the object (``recon_svbrdf``, a little varnish:
+  a_s = 0.04, r = 0.45), lit by the same flash. Optionally a printed ChArUco mat
+  (``marker_mat``: OpenCV's 5 x 7 board, DICT_4X4_50) lies flat under the object.
+- Beyond the table, optionally a dim far backdrop (``background`` albedo, a sphere of radius
+  ``background_distance`` around the object, lit by the flash: about (distance /
+  background_distance)^2 as bright as the object).
+- Cameras (:func:`tabletop_cameras`) on ``rings`` hand-held rings: elevations spread over
+  ``elevation_range`` (degrees above the table, seen from the object's center), per ring a
+  distance around ``distance``, azimuths evenly spread with jitter, each view aimed near the
+  object's center (``aim_jitter``) with a little roll (``roll_jitter`` degrees). None from below.
+- ``gt/masks/<stem>.png``: the object's own silhouette (pixel coverage > 0.5 of the object
+  rendered alone; nothing ever stands in front of it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from recon.io.cameras import Camera, CameraSet, intrinsics, look_at
+from recon.io.mesh import Mesh
+from recon.support import SupportPlane
+from recon.synth.noise import dots, fbm
+
+TABLE_SPECULAR = 0.04
+TABLE_ROUGHNESS = 0.45
+MARKER_BOARD = {"squares": (5, 7), "dictionary": "DICT_4X4_50", "marker_fraction": 0.75}
+"""The ChArUco mat: squares (x, y), the ArUco dictionary, marker side / square side."""
+
+
+# ---- the table ----
+def table_mesh(z_table: float, half_size: float) -> Mesh:
+    """Two triangles at z = ``z_table`` covering [-half, half]^2, facing +z, with UVs.
+
+    u runs with x, v with y (OBJ convention): texel row 0 of the table texture is at y = +half.
+    """
+    h = float(half_size)
+    v = np.array([[-h, -h, z_table], [h, -h, z_table], [h, h, z_table], [-h, h, z_table]])
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    uv = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    return Mesh(v, f, uv, f.copy())
+
+
+def table_texture(size: int, half_size: float, seed: int = 0) -> np.ndarray:
+    """``(size, size, 3)`` float32 linear diffuse albedo of a wooden table top.
+
+    Texel (i, j) is the table point x = -half + (j + 0.5) * 2 half / size, y = half - (i + 0.5) *
+    2 half / size (see :func:`table_mesh`). Long grain along x (stretched fractal noise), growth
+    rings warped by low-frequency noise, blotches (a few tenths of a unit, SIFT-sized at typical
+    distances) and small dark knots and marks.
+    """
+    step = 2.0 * half_size / size
+    c = -half_size + (np.arange(size) + 0.5) * step
+    x, y = np.meshgrid(c, c[::-1])
+    p = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1)
+    warp = fbm(p * np.array([0.15, 0.6, 0.0]), 1.0, octaves=3, seed=seed + 21)
+    rings = 0.5 + 0.5 * np.sin(2 * np.pi * (3.0 * p[:, 1] + 1.6 * warp))
+    rings = rings**3
+    grain = fbm(p * np.array([0.35, 9.0, 0.0]), 1.0, octaves=3, seed=seed + 22)
+    blotch = fbm(p, 2.2, octaves=4, seed=seed + 23)
+    inside, level = dots(p, 0.22, seed=seed + 24, radius=(0.12, 0.3))
+    t = 0.55 + 0.22 * rings + 0.22 * grain + 0.35 * blotch
+    t = np.where(inside, t - 0.25 - 0.35 * level, t)
+    t = np.clip(t, 0.0, 1.0)[:, None]
+    light = np.array([0.56, 0.38, 0.21])
+    dark = np.array([0.20, 0.11, 0.05])
+    rgb = dark + (light - dark) * t
+    return rgb.reshape(size, size, 3).astype(np.float32)
+
+
+def add_marker_mat(texture: np.ndarray, half_size: float, square: float) -> dict:
+    """Print OpenCV's ChArUco board (:data:`MARKER_BOARD`) into ``texture`` in place, centered
+    on the table under the object; return its description (square size in world units, the
+    board's corner positions). White paper is 0.8, black ink 0.04 (linear albedo)."""
+    import cv2
+
+    sx, sy = MARKER_BOARD["squares"]
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, MARKER_BOARD["dictionary"]))
+    board = cv2.aruco.CharucoBoard((sx, sy), square, square * MARKER_BOARD["marker_fraction"], dictionary)
+    size = texture.shape[0]
+    per_unit = size / (2.0 * half_size)
+    w_px, h_px = int(round(sx * square * per_unit)), int(round(sy * square * per_unit))
+    margin = int(round(0.4 * square * per_unit))
+    if w_px + 2 * margin >= size or h_px + 2 * margin >= size:
+        raise ValueError(f"the marker mat ({sx * square:.2f} x {sy * square:.2f}) does not fit on the table")
+    img = board.generateImage((w_px, h_px), marginSize=0, borderBits=1).astype(np.float32) / 255.0
+    paper = 0.04 + (0.8 - 0.04) * img
+    i0 = size // 2 - h_px // 2
+    j0 = size // 2 - w_px // 2
+    texture[i0 - margin:i0 + h_px + margin, j0 - margin:j0 + w_px + margin] = 0.8
+    texture[i0:i0 + h_px, j0:j0 + w_px] = paper[:, :, None]
+    x0 = -half_size + j0 / per_unit
+    y0 = half_size - i0 / per_unit
+    return {"board": {**MARKER_BOARD, "squares": [sx, sy]}, "square": float(square),
+            "marker": float(square * MARKER_BOARD["marker_fraction"]),
+            "top_left": [float(x0), float(y0)], "size": [w_px / per_unit, h_px / per_unit],
+            "note": "board image row 0 lies along +y (top_left = board corner at image pixel (0, 0)); "
+                    "x grows with the image column, y falls with the image row"}
+
+
+# ---- cameras ----
+def tabletop_cameras(settings, target=(0.0, 0.0, 0.0)) -> CameraSet:
+    """Hand-held rings above the table (see the module docstring); ``settings`` a SynthSettings."""
+    s = settings
+    rng = np.random.default_rng(np.random.SeedSequence([int(s.seed), 0x7AB1E]))
+    ext = {"dng": ".dng", "exr": ".exr", "png16": ".png", "png8": ".png"}[s.format]
+    K = intrinsics(s.width, s.height, s.fov)
+    lo, hi = s.elevation_range
+    n_rings = max(1, min(s.rings, s.n_views))
+    # rings from low to high, a margin inside the range for the jitter
+    pad = min(4.0, 0.15 * (hi - lo))
+    elevs = np.linspace(lo + pad, hi - pad, n_rings) if n_rings > 1 else np.array([0.5 * (lo + hi)])
+    # more views on the longer low rings (circumference ~ cos(elevation))
+    weight = np.cos(np.radians(elevs))
+    counts = np.floor(s.n_views * weight / weight.sum()).astype(int)
+    for k in np.argsort(-weight)[: s.n_views - counts.sum()]:
+        counts[k] += 1
+    # people stand farther back for low views, closer for views from above
+    ring_dist = s.distance * np.linspace(1.08, 0.92, n_rings) if n_rings > 1 else np.array([s.distance])
+    target = np.asarray(target, dtype=np.float64)
+    frames = []
+    for r in range(n_rings):
+        m = int(counts[r])
+        phase = rng.uniform(0, 2 * np.pi)
+        for k in range(m):
+            az = phase + 2 * np.pi * (k + rng.uniform(-0.2, 0.2)) / m
+            el = np.radians(np.clip(elevs[r] + rng.uniform(-pad, pad), lo, hi))
+            dist = ring_dist[r] * (1.0 + rng.uniform(-1, 1) * s.distance_jitter)
+            d = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+            eye = target + dist * d
+            aim = target + rng.normal(0.0, s.aim_jitter, 3) * np.array([1.0, 1.0, 0.5])
+            W = look_at(eye * s.scale, aim * s.scale, up=(0.0, 0.0, 1.0))
+            roll = np.radians(rng.normal(0.0, s.roll_jitter))
+            Rz = np.array([[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0], [0, 0, 1.0]])
+            W[:3, :] = Rz @ W[:3, :]
+            frames.append(Camera(f"images/{len(frames):04d}{ext}", s.width, s.height, K.copy(), W))
+    return CameraSet(tuple(frames), float(s.light_intensity * s.scale**2))
+
+
+# ---- rendering ----
+class TabletopScene:
+    """The object, the table and the backdrop, ready to render views (one Mitsuba scene per view)."""
+
+    def __init__(self, mesh: Mesh, textures: dict, plane_z: float, half_size: float,
+                 table_diffuse: np.ndarray, background: float, background_distance: float):
+        self.mesh = mesh
+        self.textures = textures
+        self.plane_z = float(plane_z)
+        self.table = table_mesh(plane_z, half_size)
+        self.table_textures = {"diffuse": table_diffuse, "specular": TABLE_SPECULAR,
+                               "roughness": TABLE_ROUGHNESS}
+        self.background = float(background)
+        self.background_distance = float(background_distance)
+        lo, hi = mesh.bbox()
+        self.center = 0.5 * (lo + hi)
+
+    @property
+    def plane(self) -> SupportPlane:
+        return SupportPlane(np.array([0.0, 0.0, 1.0]), -self.plane_z)
+
+    def render(self, cam: Camera, light_intensity: float, spp: int, seed: int) -> np.ndarray:
+        """(H, W, 3) float32 linear radiance of the whole scene for ``cam``."""
+        from recon.render.mitsuba_bsdf import bsdf_dict, clip_range, mitsuba_mesh, register, scene_dict
+
+        mi = register()
+        d = scene_dict(self.mesh, self.textures, cam, light_intensity, spp)
+        d["table"] = mitsuba_mesh(self.table, "table", bsdf=mi.load_dict(bsdf_dict(self.table_textures)))
+        corners = [self.mesh.v_pos, self.table.v_pos]
+        if self.background > 0:
+            r = self.background_distance
+            d["background"] = {"type": "sphere", "center": self.center.tolist(), "radius": r,
+                               "flip_normals": True,
+                               "bsdf": bsdf_dict({"diffuse": np.full(3, self.background), "specular": 0.0,
+                                                  "roughness": 1.0})}
+            corners.append(self.center + r * np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1)
+                                                       for sz in (-1, 1)]))
+        d["sensor"].update(clip_range(cam, np.concatenate(corners)))
+        scene = mi.load_dict(d)
+        img = mi.render(scene, seed=int(seed), spp=int(spp))
+        return np.array(img, dtype=np.float32)[:, :, :3]
+
+    def object_coverage(self, cam: Camera, spp: int, seed: int) -> np.ndarray:
+        """(H, W) float32 fraction of each pixel's footprint on the object alone."""
+        from recon.render.mitsuba_bsdf import render_reference
+
+        rgba = render_reference(self.mesh, self.textures, cam, 1.0, spp, seed=seed, alpha=True)
+        return rgba[:, :, 3]
