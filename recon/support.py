@@ -185,7 +185,8 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
     info : dict
         ``found`` (bool), ``reason`` (why not, or what was found), ``inliers``, ``points``,
         ``object_points`` (standing above it near the aim point), ``scale`` (the scene scale),
-        ``camera_elevation_deg`` (min/median of the cameras' elevation above the plane).
+        ``camera_elevation_deg`` (min/median/max of the cameras' elevation above the plane, seen
+        from the aim point).
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
@@ -231,14 +232,16 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
     plane = SupportPlane(n, d)
     h = plane.height(pts)
     inl = np.abs(h) < tol
-    hc = plane.height(centers)
-    elev = np.degrees(np.arcsin(np.clip(hc / np.linalg.norm(centers - target, axis=1), -1, 1)))
+    # elevations as seen from the aim point (the object's middle)
+    rise = plane.height(centers) - plane.height(target)
+    elev = np.degrees(np.arcsin(np.clip(rise / np.linalg.norm(centers - target, axis=1), -1, 1)))
     foot = plane.project(target)
     horiz = np.linalg.norm(plane.project(pts) - foot, axis=1)
     above = (h > settings.object_height * scale) & (horiz < settings.object_radius * scale)
     info.update({"inliers": int(inl.sum()), "inlier_fraction": float(inl.mean()),
                  "object_points": int(above.sum()), "aim_height": float(plane.height(target) / scale),
-                 "camera_elevation_deg": {"min": float(elev.min()), "median": float(np.median(elev))}})
+                 "camera_elevation_deg": {"min": float(elev.min()), "median": float(np.median(elev)),
+                                          "max": float(elev.max())}})
     if inl.sum() < settings.min_inliers or inl.mean() < settings.min_inlier_fraction:
         info["reason"] = (f"the best plane holds {inl.sum()} of {len(pts)} points ({100 * inl.mean():.0f}%; "
                           f"need >= {settings.min_inliers} and >= {100 * settings.min_inlier_fraction:.0f}%)")

@@ -1,13 +1,12 @@
 """``python -m recon synth``: arguments map onto SynthSettings; user errors exit with a message."""
 
-import dataclasses
 import json
 import subprocess
 import sys
 
 from recon.__main__ import build_parser, main
 from recon.io.cameras import load_cameras
-from recon.synth.capture import PRESETS
+from recon.synth.capture import PRESETS, TABLETOP_FIELDS, SynthSettings, recorded_settings
 from recon.synth.cli import settings_from_args
 
 
@@ -32,8 +31,12 @@ def test_main_writes_a_capture(tmp_path):
     # the recorded command line gives the same settings back
     recorded = meta["command"].split()[5:]
     again = settings_from_args(build_parser().parse_args(["synth", "o", *recorded]))
-    assert dataclasses.asdict(again) == {**meta["settings"], "view_z_range": again.view_z_range}
+    recorded_again = json.loads(json.dumps(recorded_settings(again)))
+    assert recorded_again == meta["settings"]
     assert tuple(meta["settings"]["view_z_range"]) == again.view_z_range
+    # a void capture records no tabletop settings: they are at their defaults
+    assert {k: getattr(again, k) for k in TABLETOP_FIELDS} == \
+        {k: getattr(SynthSettings(), k) for k in TABLETOP_FIELDS}
 
 
 def test_user_error_exits_2_with_message(tmp_path):

@@ -36,13 +36,14 @@ def test_icosphere(level):
     assert m.volume() < 4 / 3 * np.pi
 
 
-@pytest.mark.parametrize("kind,genus", [("blob", 0), ("smooth", 0), ("torus", 1)])
+@pytest.mark.parametrize("kind,genus", [("blob", 0), ("smooth", 0), ("torus", 1), ("mug", 1)])
 def test_objects_are_closed_manifolds(kind, genus):
     m = shapes.make_object(kind, level=3, seed=1)
     _check_closed_manifold(m, genus)
     assert abs(np.abs(m.v_pos).max() - shapes.EXTENT) < 1e-9  # fills the extent
     np.testing.assert_array_equal(m.v_pos, shapes.make_object(kind, level=3, seed=1).v_pos)
-    assert not np.allclose(m.v_pos, shapes.make_object(kind, level=3, seed=2).v_pos)
+    other = shapes.make_object(kind, level=3, seed=2).v_pos
+    assert other.shape != m.v_pos.shape or not np.allclose(m.v_pos, other)
 
 
 def test_blob_has_detail_that_smooth_lacks():
@@ -60,6 +61,32 @@ def test_blob_has_detail_that_smooth_lacks():
     blob = shapes.make_object("blob", level=5, seed=0)
     smooth = shapes.make_object("smooth", level=5, seed=0)
     assert detail(blob) > 3 * detail(smooth), (detail(blob), detail(smooth))
+
+
+def test_mug_has_a_cavity_and_a_flat_base():
+    """The mug's inside is hollow (rays down the middle hit the inner bottom, far below the rim)
+    and its base is flat: many vertices on the lowest plane."""
+    m = shapes.make_object("mug", level=3, seed=0)
+    lo, hi = m.bbox()
+    z = m.v_pos[:, 2]
+    assert (z < lo[2] + 1e-3 * (hi[2] - lo[2])).sum() > 10
+    # the body's axis is at the center of the vertices without the handle (x > body radius)
+    near_axis = np.hypot(m.v_pos[:, 0] - np.median(m.v_pos[:, 0]), m.v_pos[:, 1]) < 0.1
+    assert near_axis.any() and z[near_axis].max() < lo[2] + 0.3 * (hi[2] - lo[2])  # only the bottoms
+    # the volume is far below that of the full cylinder (hollow)
+    assert m.volume() < 0.5 * np.pi * (0.5 * (hi[1] - lo[1])) ** 2 * (hi[2] - lo[2])
+
+
+def test_flatten_base():
+    m = shapes.make_object("blob", level=3, seed=1)
+    f = shapes.flatten_base(m, 0.1)
+    _check_closed_manifold(f, genus=0)
+    z = f.v_pos[:, 2]
+    assert (z == z.min()).sum() > 5  # a flat base
+    np.testing.assert_array_equal(f.t_pos_idx, m.t_pos_idx)
+    assert shapes.flatten_base(m, 0.0) is m
+    with pytest.raises(ValueError, match="cut"):
+        shapes.flatten_base(m, 0.6)
 
 
 def test_unknown_kind_raises():
