@@ -5,12 +5,18 @@ by the same section of the capture's ``capture.yaml``. The capture may also pick
 ``preset`` and ``light_intensity``. Every stage turns the merged dict into its frozen settings
 dataclass with :func:`build_settings`, which rejects unknown keys with a message naming the
 file they came from.
+
+``light_intensity`` (the flash's I_e) has one route: it becomes the poses stage's
+``light_intensity`` setting, and that stage writes it into ``poses/cameras.json`` whether it
+runs SfM or passes the capture's own ``cameras.json`` through (a capture whose cameras.json
+states another intensity is an error naming both files); every later stage reads it there.
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 import os
 import typing
 from pathlib import Path
@@ -53,6 +59,16 @@ def read_capture_yaml(capture_dir: str | os.PathLike) -> dict:
     for stage in STAGES:
         if stage in data and not isinstance(data[stage], dict):
             raise ConfigError(f"{path}: '{stage}' must be a mapping of setting names to values")
+    if "light_intensity" in data:
+        value = data["light_intensity"]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+            raise ConfigError(f"{path}: light_intensity must be a positive number, got {value!r}")
+        section = data.get("poses", {})
+        if "light_intensity" in section and section["light_intensity"] != value:
+            raise ConfigError(
+                f"{path}: light_intensity {value!r} and poses.light_intensity {section['light_intensity']!r} "
+                "differ; give the light intensity once (the top-level light_intensity)"
+            )
     return data
 
 
@@ -93,8 +109,10 @@ def stage_settings(
     if stage in cap:
         merged.update(cap[stage])
         sources.append(str(Path(capture_dir) / "capture.yaml"))
-    if stage == "poses" and "light_intensity" in cap:
-        merged.setdefault("light_intensity", cap["light_intensity"])
+    if stage == "poses" and "light_intensity" in cap:  # the one route of the light (module docstring)
+        merged["light_intensity"] = cap["light_intensity"]
+        if str(Path(capture_dir) / "capture.yaml") not in sources:
+            sources.append(str(Path(capture_dir) / "capture.yaml"))
     merged["_sources"] = sources
     merged["_preset"] = preset
     return merged

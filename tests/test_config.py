@@ -32,7 +32,11 @@ def test_capture_yaml_overrides_preset(tmp_path):
     (cap / "capture.yaml").write_text("preset: accurate\noptimize: {spp: 64}\nlight_intensity: 3.0\n")
     s = rc.stage_settings("optimize", "draft", cap, presets)
     assert (s["iters"], s["spp"], s["_preset"]) == (1000, 64, "accurate")
-    assert rc.stage_settings("poses", "draft", cap, presets)["light_intensity"] == 3.0
+    poses = rc.stage_settings("poses", "draft", cap, presets)
+    assert poses["light_intensity"] == 3.0 and str(cap / "capture.yaml") in poses["_sources"]
+    # the light goes to the poses stage only (it writes it into poses/cameras.json)
+    assert all("light_intensity" not in rc.stage_settings(s, "draft", cap, presets)
+               for s in rc.STAGES if s != "poses")
 
 
 @pytest.mark.parametrize(
@@ -42,6 +46,10 @@ def test_capture_yaml_overrides_preset(tmp_path):
         ("preset: fast\n", "preset must be one of"),
         ("optimize: 3\n", "'optimize' must be a mapping"),
         ("optimize: [1\n", "not valid YAML"),
+        ("light_intensity: -2\n", "light_intensity must be a positive number, got -2"),
+        ("light_intensity: bright\n", "light_intensity must be a positive number, got 'bright'"),
+        ("light_intensity: 2\nposes: {light_intensity: 3}\n",
+         r"light_intensity 2 and poses\.light_intensity 3 differ; give the light intensity once"),
     ],
 )
 def test_bad_capture_yaml_names_the_file(tmp_path, text, match):

@@ -407,7 +407,7 @@ def _bbox(mesh) -> float:
 def surface_values(mesh, maps: dict, bary: np.ndarray) -> dict:
     """The maps at points of every face (barycentric ``bary`` (P, 3)): name -> (F, P, C), by
     bilinear lookups in the mesh's own atlas (so two atlases of one surface compare)."""
-    from recon.init_mesh import bilinear
+    from recon.hull import bilinear
 
     uv = np.einsum("pk,fkd->fpd", bary, mesh.v_tex[mesh.t_tex_idx])
     out = {}

@@ -10,9 +10,14 @@ from _geometry_scene import icosphere, linearize_and_mask, silhouette, synth_cap
 
 from recon import metrics
 from recon import poses as rp
+from recon.config import build_settings, read_capture_yaml, stage_settings
 from recon.io.cameras import Camera, CameraSet, intrinsics, load_cameras, look_at, save_cameras
 from recon.io.images import read_exr, read_ldr, read_mask, srgb_to_linear, write_exr, write_mask, write_png
 from recon.io.mesh import Mesh, read_obj, write_ply
+from recon.poses.frame import rotate_cameras
+from recon.poses.inputs import image_names
+from recon.poses.mapping import mapper_sequence, refine, rescale_model
+from recon.poses.undistort import remap, undistort_maps
 
 
 def _leftovers(folder):
@@ -29,6 +34,9 @@ def test_settings_are_checked():
         rp.PoseSettings(mapper="hierarchical")
     with pytest.raises(ValueError, match="min_registered"):
         rp.PoseSettings(min_registered=2)
+    with pytest.raises(ValueError, match="light_intensity must be a positive number, got 0"):
+        rp.PoseSettings(light_intensity=0)
+    assert rp.PoseSettings(light_intensity=3).light_intensity == 3.0 and rp.PoseSettings().light_intensity is None
 
 
 def _tiny_views(folder, n=3, w=16, h=12):
@@ -75,12 +83,62 @@ def test_given_cameras_with_wrong_size_fail_cleanly(tmp_path):
         rp.run_poses(lin, tmp_path / "poses", given_cameras=given)
 
 
+def _capture_settings(capture, **extra):
+    """The poses settings a workflow run builds for ``capture`` (preset + capture.yaml)."""
+    return build_settings(rp.PoseSettings, {**stage_settings("poses", "draft", capture), **extra})
+
+
+def test_capture_yaml_light_reaches_given_cameras(tmp_path):
+    """capture.yaml's light_intensity goes through the settings into poses/cameras.json of a
+    capture that brings its own cameras.json (one route for the light, SfM or not)."""
+    lin = tmp_path / "linear"
+    cams = _tiny_views(lin)
+    capture = tmp_path / "capture"
+    save_cameras(capture / "cameras.json", cams)
+    given = json.loads((capture / "cameras.json").read_text())
+    del given["light"]  # a cameras.json that states no light
+    given["note"] = "kept"
+    (capture / "cameras.json").write_text(json.dumps(given))
+    assert load_cameras(capture / "cameras.json").light_intensity == 1.0  # what the optimizer saw before
+    (capture / "capture.yaml").write_text("light_intensity: 7.5\n")
+    out = tmp_path / "poses"
+    diag = rp.run_poses(lin, out, _capture_settings(capture), given_cameras=capture / "cameras.json")
+    assert load_cameras(out / "cameras.json").light_intensity == 7.5 and diag["light_intensity"] == 7.5
+    written = json.loads((out / "cameras.json").read_text())
+    assert written["light"] == {"type": "collocated_point", "intensity": 7.5}
+    assert {k: v for k, v in written.items() if k != "light"} == given  # nothing else changed
+    # no capture.yaml: the file's own (here none, so the default 1), copied unchanged
+    (capture / "capture.yaml").unlink()
+    diag = rp.run_poses(lin, out, _capture_settings(capture), given_cameras=capture / "cameras.json")
+    assert (out / "cameras.json").read_bytes() == (capture / "cameras.json").read_bytes()
+    assert diag["light_intensity"] == 1.0
+
+
+def test_light_given_twice_must_agree(tmp_path):
+    lin = tmp_path / "linear"
+    cams = _tiny_views(lin)  # light.intensity 2.5
+    capture = tmp_path / "capture"
+    save_cameras(capture / "cameras.json", cams)
+    (capture / "capture.yaml").write_text("light_intensity: 2.5\n")
+    out = tmp_path / "poses"
+    diag = rp.run_poses(lin, out, _capture_settings(capture), given_cameras=capture / "cameras.json")
+    assert (out / "cameras.json").read_bytes() == (capture / "cameras.json").read_bytes()
+    assert diag["light_intensity"] == 2.5
+    (capture / "capture.yaml").write_text("light_intensity: 3\n")
+    with pytest.raises(rp.PoseError, match=r"given twice with different values: \S*capture/cameras\.json has "
+                                           r"light\.intensity 2\.5 and \S*capture/capture\.yaml \(light_intensity\) "
+                                           r"gives 3; remove it from one of the two files"):
+        rp.run_poses(lin, out, _capture_settings(capture), given_cameras=capture / "cameras.json")
+    assert load_cameras(out / "cameras.json").light_intensity == 2.5  # the earlier result is untouched
+    assert not _leftovers(tmp_path)
+
+
 def test_focal_prior_from_linear_json(tmp_path):
     p = tmp_path / "linear.json"
     p.write_text(json.dumps({"images": {"a": {"source": "images/a.dng", "focal_length_px": 1000.0},
                                         "b": {"source": "images/b.dng", "focal_length_px": 1004.0}}}))
     assert rp.focal_prior(p, ["a", "b"]) == pytest.approx(1002.0)
-    assert rp._image_names(p, ["a", "b"]) == {"a": "images/a.dng", "b": "images/b.dng"}
+    assert image_names(p, ["a", "b"]) == {"a": "images/a.dng", "b": "images/b.dng"}
     p.write_text(json.dumps({"images": {"a": {"focal_length_px": 1000.0}, "b": {"focal_length_px": 1100.0}}}))
     assert rp.focal_prior(p, ["a", "b"]) is None  # a zoom changed: no shared prior
     p.write_text(json.dumps({"images": {"a": {"focal_length_px": None}}}))
@@ -105,7 +163,7 @@ def test_undistortion_matches_the_pinhole_image():
     # the distorted photo of a pattern defined on the normalized image plane
     j, i = np.meshgrid(np.arange(64) + 0.5, np.arange(48) + 0.5)
     distorted = _pattern(cam.cam_from_img(np.stack([j.ravel(), i.ravel()], 1))).reshape(48, 64)
-    und = rp._remap(distorted.astype(np.float32), rp._undistort_maps(cam, pinhole))
+    und = remap(distorted.astype(np.float32), undistort_maps(cam, pinhole))
     jp, ip = np.meshgrid(np.arange(pinhole.width) + 0.5, np.arange(pinhole.height) + 0.5)
     expected = _pattern(pinhole.cam_from_img(np.stack([jp.ravel(), ip.ravel()], 1))).reshape(und.shape)
     inner = (slice(3, -3), slice(3, -3))  # away from the blank border
@@ -142,7 +200,7 @@ def test_object_frame_centers_scales_and_levels():
     assert abs((sim.rotation @ a)[0]) == pytest.approx(1.0, abs=1e-3)  # x along the longest axis
     assert np.linalg.det(sim.rotation) == pytest.approx(1.0)
     # the cameras seen in the object frame: still looking at the (new) origin, same images
-    moved = rp._rotate_cameras(cams, sim)
+    moved = rotate_cameras(cams, sim)
     for c0_, c1 in zip(cams, moved, strict=True):
         xy0, _ = c0_.project(pts[:5])
         xy1, _ = c1.project(q[:5])
@@ -211,7 +269,8 @@ def synthetic_sfm(tmp_path_factory):
     t0 = time.perf_counter()
     # One thread: COLMAP is deterministic then (seeded); with many threads the mapper's result
     # varies between runs (seen once: 24/40 registered after all retries).
-    diag = rp.run_poses(linear, results / "poses", rp.PoseSettings(num_threads=1), masks_dir=masks,
+    # the settings a workflow run builds (capture.yaml's light_intensity included)
+    diag = rp.run_poses(linear, results / "poses", _capture_settings(capture, num_threads=1), masks_dir=masks,
                         linear_json=linear / "linear.json")
     diag["test_seconds"] = time.perf_counter() - t0
     return capture, results, diag
@@ -273,11 +332,13 @@ def test_sfm_outputs_follow_the_contract(synthetic_sfm):
     e0 = rec.compute_mean_reprojection_error()
     cam0 = next(iter(rec.cameras.values()))
     f0, (w, h) = cam0.focal_length, (cam0.width, cam0.height)
-    rp._rescale_model(rec, (2 * h, 2 * w), 0.5)
+    rescale_model(rec, (2 * h, 2 * w), 0.5)
     cam1 = next(iter(rec.cameras.values()))
     assert (cam1.width, cam1.height) == (2 * w, 2 * h) and cam1.focal_length == pytest.approx(2 * f0)
     assert rec.compute_mean_reprojection_error() == pytest.approx(2 * e0, rel=1e-6)
     assert {"registered", "unregistered", "mean_reprojection_error_px", "timings", "trials"} <= set(diag)
+    # capture.yaml's light intensity reaches cameras.json after SfM too
+    assert est.light_intensity == diag["light_intensity"] == read_capture_yaml(capture)["light_intensity"]
     assert diag["silhouette_consistency"] > 0.95
     assert json.loads((out / "poses.json").read_text())["registered"] == diag["registered"]
 
@@ -293,10 +354,10 @@ def test_refinement_never_keeps_implausible_intrinsics(synthetic_sfm):
     cam = next(iter(rec.cameras.values()))
     shape, f = (cam.height, cam.width), cam.mean_focal_length()
     settings = rp.PoseSettings(num_threads=1)
-    ok, info = rp._refine(pycolmap.Reconstruction(rec), settings, shape, f)
+    ok, info = refine(pycolmap.Reconstruction(rec), settings, shape, f)
     assert info["distortion"] in ("none", "estimated") and "rejected_free" not in info
     assert next(iter(ok.cameras.values())).mean_focal_length() == pytest.approx(f, rel=0.05)
-    held, info = rp._refine(pycolmap.Reconstruction(rec), settings, shape, 3.0 * f)
+    held, info = refine(pycolmap.Reconstruction(rec), settings, shape, 3.0 * f)
     assert info["distortion"] == "held as mapped" and "rejected_free" in info
     np.testing.assert_allclose(next(iter(held.cameras.values())).params, cam.params)
     assert info["reprojection_error_after_px"] <= info["reprojection_error_before_px"] + 1e-6
@@ -314,8 +375,8 @@ def test_refinement_never_keeps_implausible_intrinsics(synthetic_sfm):
     assert right > 0.95 and wrong < 0.7, (right, wrong)
     assert rp.silhouette_consistency(rec, {}) is None
     # the order of mapping trials: with an EXIF focal length the held-intrinsics mapper first
-    assert rp._mapper_sequence(rp.PoseSettings(), True)[0] == "incremental_fixed"
-    assert "incremental_fixed" not in rp._mapper_sequence(rp.PoseSettings(), False)
+    assert mapper_sequence(rp.PoseSettings(), True)[0] == "incremental_fixed"
+    assert "incremental_fixed" not in mapper_sequence(rp.PoseSettings(), False)
 
 
 def test_sfm_on_real_photos(shared_data, tmp_path):

@@ -1,0 +1,131 @@
+"""The visual hull as a distance field: the part of space every silhouette cone holds.
+
+Used by the init_mesh stage (the initial mesh is the field's zero level set) and by the poses
+stage (a coarse hull gives the object's extent for the object frame).
+
+:func:`silhouette_field` evaluates, on a :class:`Grid` of voxel centers, for every view the
+signed 2-D distance of a voxel's projection to the mask's outline (positive inside, from
+``cv2.distanceTransform``, looked up bilinearly), converted to world units at the voxel's depth
+(``d_px * z / f``: the distance to the silhouette cone at that depth). The field is the minimum
+over the views that see the voxel (the intersection of the cones). Unlike binary carving of voxel
+centers, its zero level set lies between voxels, so a surface extracted from it is placed to
+sub-voxel precision.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from recon.io.cameras import CameraSet
+
+
+class HullError(ValueError):
+    """Masks and cameras that give no visual hull; the message says which."""
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Voxel centers ``origin + step * (i, j, k)`` for i, j, k in [0, resolution)."""
+
+    origin: np.ndarray  # (3,) the center of voxel (0, 0, 0)
+    step: float
+    resolution: int
+
+    @staticmethod
+    def cube(center, half_size: float, resolution: int) -> "Grid":
+        step = 2.0 * half_size / resolution
+        return Grid(np.asarray(center, float) - half_size + 0.5 * step, step, resolution)
+
+    def points(self) -> np.ndarray:
+        """(R^3, 3) voxel centers in C order (i slowest)."""
+        a = np.arange(self.resolution) * self.step
+        g = np.stack(np.meshgrid(a, a, a, indexing="ij"), axis=-1).reshape(-1, 3)
+        return g + self.origin
+
+
+def _signed_distance_px(mask: np.ndarray) -> np.ndarray:
+    """(H, W) float32 signed distance to the mask outline in pixels, positive inside.
+
+    The outline sits between pixels: the values are +-0.5 on the two sides of it.
+    """
+    import cv2
+
+    m = mask.astype(np.uint8)
+    inside = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    outside = cv2.distanceTransform(1 - m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return np.where(m > 0, inside - 0.5, 0.5 - outside).astype(np.float32)
+
+
+def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of an (H, W) float map sampled at pixel centers, at continuous pixel
+    coordinates ``x`` (column) and ``y`` (row) (pixel (i, j) covers [j, j+1] x [i, i+1]);
+    clamped at the border. ``cv2.remap`` does the work (its maps are limited to 32767 rows, so
+    the query points are laid out 1024 to a row); positions are resolved to 1/32 pixel."""
+    import cv2
+
+    n = len(x)
+    width = 1024
+    rows = max(1, -(-n // width))
+    mx = np.zeros(rows * width, np.float32)
+    my = np.zeros(rows * width, np.float32)
+    mx[:n] = np.asarray(x, np.float32) - 0.5  # cv2 addresses pixel centers by integers
+    my[:n] = np.asarray(y, np.float32) - 0.5
+    out = cv2.remap(np.ascontiguousarray(image, np.float32), mx.reshape(rows, width), my.reshape(rows, width),
+                    cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1)[:n]
+
+
+def silhouette_field(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid, min_views: int = 2,
+                     margin_px: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Visual-hull distance field on ``grid``.
+
+    Parameters
+    ----------
+    cams : cameras (pinhole, OpenCV axes); views without a mask are skipped.
+    masks : stem -> (H, W) bool, the size of the camera's image.
+
+    Returns
+    -------
+    field : (R, R, R) float32
+        Approximate distance to the hull surface in world units, positive inside.
+    seen : (R, R, R) int16
+        How many views see each voxel.
+
+    Voxels seen by fewer than ``min_views`` views count as outside; the silhouettes are grown by
+    ``margin_px`` pixels. Raises :class:`HullError` for a mask whose size is not its camera's and
+    for fewer than 2 views with a mask.
+    """
+    pts = grid.points().astype(np.float32)
+    field = np.full(len(pts), np.inf, np.float32)
+    seen = np.zeros(len(pts), np.int16)
+    used = 0
+    for cam in cams:
+        mask = masks.get(cam.stem)
+        if mask is None:
+            continue
+        if mask.shape != (cam.height, cam.width):
+            raise HullError(f"mask of {cam.stem} is {mask.shape[::-1]} but its camera is {cam.width}x{cam.height}")
+        used += 1
+        sd = _signed_distance_px(mask) + np.float32(margin_px)
+        alive = np.flatnonzero(field > -4 * grid.step)  # far-outside voxels stay outside
+        P = (cam.K @ cam.world_to_camera[:3, :]).astype(np.float32)  # (3, 4) projection
+        h = pts[alive] @ P[:, :3].T + P[:, 3]
+        z = h[:, 2]
+        front = z > 1e-6
+        zs = np.where(front, z, 1.0)
+        x, y = h[:, 0] / zs, h[:, 1] / zs
+        inimg = front & (x >= 0) & (x < cam.width) & (y >= 0) & (y < cam.height)
+        sel = np.flatnonzero(inimg)
+        f = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
+        d_world = bilinear(sd, x[sel], y[sel]) * (z[sel] / np.float32(f))
+        idx = alive[sel]
+        field[idx] = np.minimum(field[idx], d_world)
+        seen[idx] += 1
+    if used < 2:
+        raise HullError(f"a visual hull needs masks for at least 2 views, found {used}")
+    field[seen < min_views] = -np.inf
+    field = np.where(np.isfinite(field), field, np.where(field > 0, 4 * grid.step, -4 * grid.step))
+    r = grid.resolution
+    return field.reshape(r, r, r).astype(np.float32), seen.reshape(r, r, r)

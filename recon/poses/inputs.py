@@ -1,0 +1,89 @@
+"""The poses stage's inputs: the linearize stage's views and ``linear.json``, the masks."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from recon.io.images import read_mask
+from recon.poses.settings import PoseError
+
+log = logging.getLogger(__name__)
+
+
+def linear_stems(linear_dir: Path) -> list[str]:
+    """The stems of the linearize stage's views (``<stem>.exr``), sorted."""
+    stems = sorted(p.stem for p in linear_dir.glob("*.exr") if not p.name.startswith("."))
+    if not stems:
+        raise PoseError(f"{linear_dir}: no linear images (<stem>.exr); run the linearize stage first")
+    return stems
+
+
+def _linear_entries(linear_json: Path | None) -> dict[str, dict]:
+    """Per-view metadata of ``linear.json`` keyed by stem (tolerant of list or dict layouts)."""
+    if linear_json is None or not Path(linear_json).is_file():
+        return {}
+    try:
+        data = json.loads(Path(linear_json).read_text())
+    except json.JSONDecodeError as e:
+        raise PoseError(f"{linear_json}: not valid JSON ({e}); rerun the linearize stage") from e
+    items = None
+    for key in ("images", "views", "frames"):
+        if isinstance(data.get(key), (dict, list)):
+            items = data[key]
+            break
+    out = {}
+    if isinstance(items, dict):
+        out = {Path(k).stem: v for k, v in items.items() if isinstance(v, dict)}
+    elif isinstance(items, list):
+        for v in items:
+            if isinstance(v, dict):
+                name = v.get("stem") or v.get("image") or v.get("source") or v.get("file")
+                if name:
+                    out[Path(str(name)).stem] = v
+    return out
+
+
+_FOCAL_KEYS = ("focal_length_px", "focal_px", "focal_length_pixels", "f_px")
+
+
+def focal_prior(linear_json: Path | None, stems: list[str]) -> float | None:
+    """Median focal length in pixels from ``linear.json`` when every view agrees within 1%."""
+    entries = _linear_entries(linear_json)
+    vals = []
+    for s in stems:
+        e = entries.get(s, {})
+        v = next((e[k] for k in _FOCAL_KEYS if isinstance(e.get(k), (int, float)) and e[k] > 0), None)
+        if v is not None:
+            vals.append(float(v))
+    if not vals:
+        return None
+    f = float(np.median(vals))
+    if max(vals) > 1.01 * min(vals):
+        log.warning("focal lengths differ between views (%.1f..%.1f px): no prior used", min(vals), max(vals))
+        return None
+    return f
+
+
+def image_names(linear_json: Path | None, stems: list[str]) -> dict[str, str]:
+    """The capture image path (``images/<file>``) of each stem, as cameras.json records it."""
+    entries = _linear_entries(linear_json)
+    out = {}
+    for s in stems:
+        e = entries.get(s, {})
+        name = next((e[k] for k in ("image", "source", "file") if isinstance(e.get(k), str)), None)
+        if name is None:
+            out[s] = f"images/{s}"
+        else:
+            out[s] = name if "/" in name else f"images/{name}"
+    return out
+
+
+def read_masks(masks_dir: Path | None, stems: list[str]) -> dict[str, np.ndarray]:
+    """The masks stage's masks of ``stems`` (stem -> (H, W) bool); views without one are left out."""
+    if masks_dir is None:
+        return {}
+    return {s: read_mask(Path(masks_dir) / f"{s}.png") for s in stems if (Path(masks_dir) / f"{s}.png").is_file()}

@@ -1,0 +1,78 @@
+"""Settings and the error of the poses stage."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+class PoseError(ValueError):
+    """Cameras that cannot be recovered or used; the message lists the views and what to try."""
+
+
+@dataclass(frozen=True)
+class PoseSettings:
+    """Settings of the SfM path (ignored when the capture gives cameras.json)."""
+
+    # ---- features ----
+    max_image_size: int = 1600  # SIFT runs on images downscaled to this long side (-1: full)
+    max_num_features: int = 8192
+    sift_encoding: str = "srgb"  # srgb | log: what SIFT sees (see sift_image)
+    sift_upsample: int = 1  # enlarge the SIFT images by this factor; 0: auto (see sift_upsample_factor)
+    max_num_features_upsampled: int = 2048  # feature cap on enlarged images (matching cost)
+    peak_threshold: float = 0.001  # COLMAP's default 0.0067 finds too few on smooth objects
+    highlight_factor: float = 4.0  # no features where luminance > this x the object's median (0: off)
+    affine_features: bool = False  # affine-covariant SIFT + domain-size pooling (wide baselines)
+    guided_matching: bool = False
+    max_ratio: float = 0.8  # SIFT ratio test
+    camera_model: str = "SIMPLE_RADIAL"  # shared camera; PINHOLE-like models skip distortion
+    # ---- matching ----
+    matcher: str = "auto"  # auto | exhaustive | sequential
+    exhaustive_max_views: int = 120  # auto: exhaustive up to this many views
+    sequential_overlap: int = 15
+    min_num_inliers: int = 12  # verified two-view geometry
+    verify_max_error: float = 0.0  # RANSAC epipolar threshold, pixels; 0: 0.4% of the long side in [1, 4]
+    # ---- mapping ----
+    mapper: str = "auto"  # auto (see mapping.mapper_sequence) | incremental | incremental_fixed | global
+    init_min_num_inliers: int = 50
+    abs_pose_min_num_inliers: int = 15
+    mapping_trials: int = 4  # retries (other mapper, other seed) while too many views are left out
+    accept_fraction: float = 0.95  # a trial registering this fraction of the views ends the retries
+    max_mapping_seconds: float = 600.0  # per incremental trial
+    min_registered: int = 3
+    min_view_points: int = 15  # views posed from fewer 3D points are dropped (unreliable)
+    min_registered_fraction: float = 0.5  # fewer than this (largest model / views): error
+    min_silhouette_consistency: float = 0.9  # with masks: see silhouette_consistency (0: off)
+    refine: bool = True  # a final robust bundle adjustment
+    refine_loss_scale: float = 0.5  # Cauchy loss scale, pixels
+    distortion_gain: float = 0.05  # keep lens distortion only if it cuts the error by more (-1: always)
+    seed: int = 0
+    num_threads: int = -1
+    # ---- object frame ----
+    bbox_percentile: float = 1.0  # robust box of the sparse points: [p, 100 - p] percentiles
+    margin: float = 0.1  # the object fills [-(1 - margin), 1 - margin]
+    hull_resolution: int = 64  # coarse visual hull for the object's extent (0: sparse points only)
+    # ---- light ----
+    # I_e written to cameras.json's light.intensity: capture.yaml's ``light_intensity`` (merged
+    # here by recon.config). None: a given cameras.json keeps its own, SfM writes 1.
+    light_intensity: float | None = None
+
+    def __post_init__(self):
+        if self.matcher not in ("auto", "exhaustive", "sequential"):
+            raise ValueError(f"matcher must be auto, exhaustive or sequential, got {self.matcher!r}")
+        if self.sift_encoding not in ("log", "srgb"):
+            raise ValueError(f"sift_encoding must be log or srgb, got {self.sift_encoding!r}")
+        if self.mapper not in ("auto", "incremental", "incremental_fixed", "global"):
+            raise ValueError(f"mapper must be auto, incremental, incremental_fixed or global, got {self.mapper!r}")
+        if self.min_registered < 3:
+            raise ValueError(f"min_registered must be >= 3, got {self.min_registered}")
+        if not 0 <= self.margin < 1 or not 0 <= self.bbox_percentile < 50:
+            raise ValueError("margin must be in [0, 1) and bbox_percentile in [0, 50)")
+        if self.mapping_trials < 1:
+            raise ValueError(f"mapping_trials must be >= 1, got {self.mapping_trials}")
+        if self.light_intensity is not None:
+            value = self.light_intensity
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                raise ValueError(f"light_intensity must be a positive number, got {value!r}")
+            object.__setattr__(self, "light_intensity", float(value))
+

@@ -1,0 +1,301 @@
+"""The poses stage's entry point: pass given cameras through, or run SfM (see :mod:`recon.poses`)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from recon.io.atomic import atomic_dir, atomic_path
+from recon.io.cameras import Camera, CameraError, CameraSet, load_cameras, save_cameras
+from recon.io.images import read_exr
+from recon.poses.features import extract_and_match, write_sift_images
+from recon.poses.frame import object_frame, points_in_masks, rotate_cameras
+from recon.poses.inputs import focal_prior, image_names, linear_stems, read_masks
+from recon.poses.mapping import map_views, refine, rescale_model, silhouette_consistency, unregistered_reasons
+from recon.poses.settings import PoseError, PoseSettings
+from recon.poses.undistort import pinhole_camera, undistort_maps, undistort_view
+
+log = logging.getLogger(__name__)
+
+DEFAULT_LIGHT_INTENSITY = 1.0
+"""cameras.json's light intensity when nothing gives one (after SfM the scale is arbitrary)."""
+
+
+def run_poses(
+    linear_dir: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    settings: PoseSettings | None = None,
+    masks_dir: str | os.PathLike | None = None,
+    linear_json: str | os.PathLike | None = None,
+    given_cameras: str | os.PathLike | None = None,
+) -> dict:
+    """Recover (or pass through) the cameras of a capture; write the stage folder ``out_dir``.
+
+    Parameters
+    ----------
+    linear_dir : the linearize stage's folder (``<stem>.exr``, ``<stem>.sat.png``).
+    out_dir : ``results/<capture>/poses``; replaced atomically (nothing partial on error).
+    settings : the SfM settings and ``light_intensity``, which is written into ``cameras.json``
+        in both cases (given cameras and SfM); default ``PoseSettings()``.
+    masks_dir : the masks stage's folder (``<stem>.png``), optional but needed for a good frame.
+    linear_json : the linearize stage's ``linear.json`` (focal length prior, image names).
+    given_cameras : the capture's ``cameras.json``; when given it is validated and copied.
+
+    Returns
+    -------
+    The diagnostics written to ``poses.json``.
+
+    Raises
+    ------
+    PoseError
+        Fewer than ``min_registered`` views registered, or the largest model holds less than
+        ``min_registered_fraction`` of the views (the message lists every unregistered view
+        with the reason and what to try); given cameras that do not fit the images, or whose
+        ``light.intensity`` differs from ``settings.light_intensity``.
+    """
+    settings = settings or PoseSettings()
+    linear_dir = Path(linear_dir)
+    out_dir = Path(out_dir)
+    t_start = time.perf_counter()
+    with atomic_dir(out_dir) as tmp:
+        if given_cameras is not None:
+            diag = _passthrough(Path(given_cameras), linear_dir, Path(masks_dir) if masks_dir else None, tmp,
+                                settings.light_intensity)
+        else:
+            diag = _sfm(linear_dir, tmp, settings, Path(masks_dir) if masks_dir else None,
+                        Path(linear_json) if linear_json else None)
+        diag["seconds"] = time.perf_counter() - t_start
+        (tmp / "poses.json").write_text(json.dumps(diag, indent=1))
+    return diag
+
+
+# ---------------------------------------------------------------------------------------------
+# Given cameras
+# ---------------------------------------------------------------------------------------------
+def _link_or_copy(src: Path, dst: Path) -> None:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def _passthrough(given: Path, linear_dir: Path, masks_dir: Path | None, tmp: Path,
+                 light_intensity: float | None) -> dict:
+    try:
+        cams = load_cameras(given)
+    except CameraError as e:
+        raise PoseError(f"{e} (fix the capture's cameras.json, or delete it to run SfM)") from e
+    stems = set(linear_stems(linear_dir))
+    for c in cams:
+        exr = linear_dir / f"{c.stem}.exr"
+        if c.stem not in stems:
+            raise PoseError(f"{given}: camera for '{c.image}' but no linear image {exr}; the names must match images/")
+        h, w = read_exr(exr).shape[:2]
+        if (w, h) != (c.width, c.height):
+            raise PoseError(f"{given}: '{c.image}' is {c.width}x{c.height} in cameras.json but the image is {w}x{h}")
+        _link_or_copy(exr, tmp / "undistorted" / f"{c.stem}.exr")
+        sat = linear_dir / f"{c.stem}.sat.png"
+        if sat.is_file():
+            _link_or_copy(sat, tmp / "undistorted" / f"{c.stem}.sat.png")
+        if masks_dir is not None and (Path(masks_dir) / f"{c.stem}.png").is_file():
+            _link_or_copy(Path(masks_dir) / f"{c.stem}.png", tmp / "undistorted" / "masks" / f"{c.stem}.png")
+    light = _copy_given_cameras(given, tmp / "cameras.json", cams.light_intensity, light_intensity)
+    missing = sorted(stems - {c.stem for c in cams})
+    if missing:
+        log.warning("views without a camera in %s are not used: %s", given, ", ".join(missing))
+    return {"source": "given", "cameras": str(given), "registered": len(cams),
+            "unregistered": {m: "no camera in cameras.json" for m in missing}, "light_intensity": light}
+
+
+def _copy_given_cameras(given: Path, dest: Path, given_intensity: float, light_intensity: float | None) -> float:
+    """Copy the capture's cameras.json to ``dest`` with ``light_intensity`` (the settings', i.e.
+    capture.yaml's) as its ``light.intensity``; the file is copied unchanged when that adds
+    nothing. Returns the intensity ``dest`` holds.
+
+    ``given_intensity`` is the validated value :func:`load_cameras` read (1 when the file has
+    none). A file that states its own intensity and settings that give another: PoseError
+    naming both sources, since either may be the stale one.
+    """
+    data = json.loads(given.read_text())
+    light = data.get("light") or {}
+    if light_intensity is None or ("intensity" in light and math.isclose(given_intensity, light_intensity,
+                                                                          rel_tol=1e-6)):
+        shutil.copyfile(given, dest)
+        return given_intensity
+    if "intensity" in light:
+        capture_yaml = given.parent / "capture.yaml"
+        other = f"{capture_yaml} (light_intensity)" if capture_yaml.is_file() else "the poses settings (light_intensity)"
+        raise PoseError(
+            f"the light intensity is given twice with different values: {given} has light.intensity "
+            f"{given_intensity:g} and {other} gives {light_intensity:g}; remove it from one of the two files "
+            "(or make them agree)"
+        )
+    data["light"] = {**light, "type": "collocated_point", "intensity": float(light_intensity)}
+    dest.write_text(json.dumps(data, indent=1))
+    return float(light_intensity)
+
+
+# ---------------------------------------------------------------------------------------------
+# Structure from motion
+# ---------------------------------------------------------------------------------------------
+def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | None,
+         linear_json: Path | None) -> dict:
+    timings = {}
+    stems = linear_stems(linear_dir)
+    n = len(stems)
+    if n < settings.min_registered:
+        raise PoseError(
+            f"{linear_dir}: {n} view(s), but SfM needs at least {settings.min_registered} overlapping photos "
+            f"(poses.min_registered = {settings.min_registered}); photograph the object from more sides "
+            "(a view every 10-15 degrees), or provide cameras.json in the capture so SfM is skipped"
+        )
+    light_intensity = DEFAULT_LIGHT_INTENSITY if settings.light_intensity is None else settings.light_intensity
+
+    # ---- features and matching ----
+    t0 = time.perf_counter()
+    work = tmp / "work"
+    images = work / "images"
+    images.mkdir(parents=True)
+    masks = read_masks(masks_dir, stems)
+    feature_masks = work / "feature_masks" if settings.highlight_factor > 0 else None
+    shapes, up = write_sift_images(linear_dir, stems, images, masks, feature_masks, settings.highlight_factor,
+                                   settings.sift_encoding, settings)
+    shape = shapes[stems[0]]
+    timings["sift_images_s"] = time.perf_counter() - t0
+    f_prior = focal_prior(linear_json, stems)
+    log.info("SfM on %d views of %dx%d (SIFT on %dx enlarged images), focal prior %s", n, shape[1], shape[0],
+             up, f"{f_prior:.1f} px" if f_prior else "none")
+    # COLMAP works at the SIFT images' size; the model is scaled back after refinement
+    f_sift = f_prior * up if f_prior else None
+    shape_sift = (shape[0] * up, shape[1] * up)
+    db = work / "database.db"
+    timings.update(extract_and_match(db, images, n, settings, f_sift, shape_sift, feature_masks,
+                                     max_features=settings.max_num_features if up == 1
+                                     else min(settings.max_num_features, settings.max_num_features_upsampled)))
+    matcher = timings.pop("matcher")
+
+    # ---- mapping ----
+    t0 = time.perf_counter()
+    rec, models, trials, trial, weak = map_views(db, images, work / "mapping", settings, n, shape_sift, f_sift,
+                                                 masks, up)
+    timings["map_s"] = time.perf_counter() - t0
+
+    registered = set()
+    if rec is not None:
+        registered = {Path(rec.images[i].name).stem for i in rec.reg_image_ids()}
+    others = [sorted(Path(m.images[i].name).stem for i in m.reg_image_ids()) for m in models[1:]]
+    reasons = unregistered_reasons(db, stems, registered, settings, others)
+    for s, k in weak.items():
+        reasons[s] = (f"posed from only {k} 3D points (needs >= {settings.min_view_points}): too little "
+                      "overlap with the other views")
+    if len(registered) < settings.min_registered or len(registered) < settings.min_registered_fraction * n:
+        lines = "\n".join(f"  {s}: {reasons[s]}" for s in sorted(reasons))
+        split = f" The views split into separate models ({len(models)} models)." if len(models) > 1 else ""
+        raise PoseError(
+            f"{linear_dir.parent}: only {len(registered)} of {n} views could be registered by SfM "
+            f"(need >= {settings.min_registered} and >= {settings.min_registered_fraction:.0%}).{split}\n"
+            f"Unregistered views:\n{lines}\n"
+            "What to try: photos with more overlap (a view every 10-15 degrees around the object), "
+            "more texture on the object or a textured support, sharper photos; or provide "
+            "cameras.json (and masks/) in the capture so SfM is skipped."
+        )
+    if reasons:
+        log.warning("%d of %d views not registered and dropped:\n%s", len(reasons), n,
+                    "\n".join(f"  {s}: {r}" for s, r in sorted(reasons.items())))
+    shutil.rmtree(work / "mapping", ignore_errors=True)
+    refinement = {}
+    if settings.refine:
+        rec, refinement = refine(rec, settings, shape_sift, f_sift)
+    if up > 1:
+        rescale_model(rec, shape, up)
+    (tmp / "sparse").mkdir()
+    rec.write(tmp / "sparse")
+
+    # ---- undistortion to the pinhole camera ----
+    t0 = time.perf_counter()
+    colmap_cam = next(iter(rec.cameras.values()))
+    pinhole = pinhole_camera(colmap_cam, settings.camera_model)
+    maps = undistort_maps(colmap_cam, pinhole)
+    K = pinhole.calibration_matrix()
+    names = image_names(linear_json, stems)
+    frames = []
+    und_masks = {}
+    by_stem = {Path(rec.images[i].name).stem: rec.images[i] for i in rec.reg_image_ids()}
+    for s in sorted(by_stem):
+        m = undistort_view(linear_dir, tmp / "undistorted", s, maps, masks.get(s))
+        if m is not None:
+            und_masks[s] = m
+        W = np.eye(4)
+        W[:3, :4] = by_stem[s].cam_from_world().matrix()
+        frames.append(Camera(names[s], pinhole.width, pinhole.height, K.copy(), W))
+    cams_colmap = CameraSet(tuple(frames), light_intensity)
+    timings["undistort_s"] = time.perf_counter() - t0
+
+    # ---- object frame ----
+    t0 = time.perf_counter()
+    xyz, in_mask = points_in_masks(rec, masks)
+    sim, frame_info = object_frame(cams_colmap, xyz, in_mask, und_masks, settings)
+    cams = rotate_cameras(cams_colmap, sim)
+    cams = CameraSet(cams.frames, light_intensity, {"colmap_to_object": sim.matrix.tolist()})
+    timings["frame_s"] = time.perf_counter() - t0
+    save_cameras(tmp / "cameras.json", cams)
+    _write_points(tmp / "points.ply", sim.apply(xyz) if len(xyz) else xyz, in_mask)
+    frame = {"colmap_to_object": sim.to_dict(), **frame_info,
+             "note": "x_object = scale * rotation @ x_colmap + translation; sparse/ is in COLMAP's frame"}
+    (tmp / "frame.json").write_text(json.dumps(frame, indent=1))
+
+    mre = float(rec.compute_mean_reprojection_error())
+    sil = silhouette_consistency(rec, masks)
+    if sil is not None and sil < settings.min_silhouette_consistency:
+        log.warning("only %.0f%% of the sparse points project inside the other views' masks (a right model: "
+                    "> %.0f%%): the cameras and the masks disagree; either the masks miss parts of the object "
+                    "(check results/<capture>/masks) or SfM found a wrong (e.g. mirrored) solution; more "
+                    "texture on the object or a textured support helps SfM", 100 * sil,
+                    100 * settings.min_silhouette_consistency)
+    diag = {
+        "source": "sfm",
+        "views": n,
+        "registered": len(registered),
+        "registered_views": sorted(registered),
+        "unregistered": reasons,
+        "mean_reprojection_error_px": mre,
+        "points3D": int(rec.num_points3D()),
+        "points3D_in_masks": int(in_mask.sum()),
+        "silhouette_consistency": sil,
+        "camera": {"model": colmap_cam.model_name, "params": list(map(float, colmap_cam.params)),
+                   "width": colmap_cam.width, "height": colmap_cam.height,
+                   "focal_prior_px": f_prior},
+        "pinhole": {"width": pinhole.width, "height": pinhole.height, "K": K.tolist()},
+        "matcher": matcher,
+        "sift_upsample": up,
+        "mapper": settings.mapper,
+        "trials": trials,
+        "chosen_trial": trial,
+        "refinement": refinement,
+        "frame": frame,
+        "light_intensity": light_intensity,
+        "timings": timings,
+        "settings": asdict(settings),
+    }
+    log.info("registered %d/%d views, mean reprojection error %.3f px, %d points (%d in masks); %s",
+             len(registered), n, mre, rec.num_points3D(), in_mask.sum(),
+             ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))
+    return diag
+
+
+def _write_points(path: Path, xyz: np.ndarray, flag: np.ndarray) -> None:
+    """ASCII PLY of points with an ``in_mask`` property."""
+    lines = ["ply", "format ascii 1.0", f"element vertex {len(xyz)}", "property float x", "property float y",
+             "property float z", "property uchar in_mask", "end_header"]
+    lines += [f"{x:.6g} {y:.6g} {z:.6g} {int(f)}" for (x, y, z), f in zip(xyz, flag, strict=True)]
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")

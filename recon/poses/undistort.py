@@ -1,0 +1,60 @@
+"""Undistortion of the views to the pinhole camera COLMAP derives (``pycolmap.undistort_camera``).
+
+The linear EXRs, the clipped-pixel masks and the masks are resampled by ``cv2.remap`` in float:
+the 8-bit route of ``pycolmap.undistort_images`` would lose the linear data.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from recon.io.images import read_exr, read_mask, write_exr, write_mask
+from recon.poses.settings import PoseError
+
+
+def pinhole_camera(cam, camera_model: str):
+    """The pinhole camera (square pixels) of the undistorted images of COLMAP camera ``cam``."""
+    import pycolmap
+
+    pinhole = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), cam)
+    fx, fy = pinhole.focal_length_x, pinhole.focal_length_y
+    if abs(fx - fy) > 1e-6 * fx:  # models with two focal lengths: make pixels square
+        raise PoseError(f"camera model {camera_model} gave fx={fx:.2f} != fy={fy:.2f}; use "
+                        "SIMPLE_RADIAL, RADIAL or SIMPLE_PINHOLE (square pixels)")
+    return pinhole
+
+
+def undistort_maps(cam, pinhole):
+    """cv2.remap maps (float32 (H', W')) from the pinhole image to the distorted one."""
+    h, w = pinhole.height, pinhole.width
+    j, i = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    pix = np.stack([j.ravel(), i.ravel()], axis=1)
+    xy = pinhole.cam_from_img(pix)
+    src = cam.img_from_cam(np.concatenate([xy, np.ones((len(xy), 1))], axis=1), check_cheirality=False)
+    src = src.reshape(h, w, 2) - 0.5  # cv2 addresses pixel centers by integers
+    return src[:, :, 0].astype(np.float32), src[:, :, 1].astype(np.float32)
+
+
+def remap(img: np.ndarray, maps) -> np.ndarray:
+    import cv2
+
+    out = cv2.remap(np.ascontiguousarray(img, dtype=np.float32), maps[0], maps[1], cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out if out.ndim == 3 else out[:, :, None] if img.ndim == 3 else out
+
+
+def undistort_view(linear_dir: Path, out_dir: Path, stem: str, maps, mask: np.ndarray | None) -> np.ndarray | None:
+    """Write the undistorted ``<stem>.exr``, ``<stem>.sat.png`` (when the linear view has one) and
+    ``masks/<stem>.png`` (when ``mask`` is given) under ``out_dir``; return the undistorted mask."""
+    img = read_exr(linear_dir / f"{stem}.exr")
+    write_exr(out_dir / f"{stem}.exr", remap(img, maps))
+    sat = linear_dir / f"{stem}.sat.png"
+    if sat.is_file():
+        write_mask(out_dir / f"{stem}.sat.png", remap(read_mask(sat).astype(np.float32), maps) > 0)
+    if mask is None:
+        return None
+    undistorted = remap(mask.astype(np.float32), maps) >= 0.5
+    write_mask(out_dir / "masks" / f"{stem}.png", undistorted)
+    return undistorted
