@@ -1,16 +1,22 @@
-"""Writing Bayer DNG files (pidng), for synthetic captures and tests.
+"""DNG files: the TIFF tags a RAW linearization reads, and Bayer DNGs written for synthetic captures.
 
-:func:`write_dng` stores a CFA image with the tags a RAW linearization needs: black and white
-level, CFA pattern, ColorMatrix1 with CalibrationIlluminant1 = D65, AsShotNeutral, exposure
-(ExposureTime, PhotographicSensitivity, FNumber), FocalLength with the focal plane resolution
-(so the focal length in pixels can be recovered) and, optionally, a DefaultCrop and a
-LinearizationTable. The data are stored uncompressed, 12-bit sensors in packed 12-bit samples and
-others in 16-bit samples (pidng's ``compress=True`` crashes on
+Reading: :func:`read_tiff_tags` returns the tags of IFD0, of the raw IFD and of the EXIF IFD of
+a DNG (or another TIFF-based RAW) by name, and refuses corrupt or truncated files;
+:func:`tag_number` and :func:`tag_rationals` turn TIFF/EXIF values (rationals as (num, den)
+pairs) into floats.
+
+Writing: :func:`write_dng` (pidng) stores a CFA image with the tags a RAW linearization needs:
+black and white level, CFA pattern, ColorMatrix1 with CalibrationIlluminant1 = D65,
+AsShotNeutral, exposure (ExposureTime, PhotographicSensitivity, FNumber), FocalLength with the
+focal plane resolution (so the focal length in pixels can be recovered) and, optionally, a
+DefaultCrop and a LinearizationTable. The data are stored uncompressed, 12-bit sensors in packed
+12-bit samples and others in 16-bit samples (pidng's ``compress=True`` crashes on
 Python 3.11); rawpy reads them back bit-exact.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from fractions import Fraction
@@ -24,8 +30,103 @@ CFA_CODES = {"R": 0, "G": 1, "B": 2}
 CALIBRATION_ILLUMINANT_D65 = 21
 """EXIF LightSource code of D65 (DNG CalibrationIlluminant)."""
 FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)
+"""Diagonal of a 35 mm film frame (36 x 24 mm), the reference of FocalLengthIn35mmFilm."""
 
 
+# ---- reading ----
+def tag_number(v) -> float | None:
+    """A TIFF/EXIF number (int, float, (num, den) tuple, Fraction) as float; None if unusable."""
+    if v is None:
+        return None
+    if isinstance(v, np.ndarray):
+        v = v.ravel().tolist()
+    if isinstance(v, (tuple, list)) and len(v) == 1:
+        v = v[0]
+    if isinstance(v, (tuple, list)) and len(v) == 2:
+        num, den = v
+        if den == 0:
+            return None
+        v = num / den
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
+
+
+def tag_rationals(v, count: int) -> np.ndarray | None:
+    """A TIFF (S)RATIONAL array tag (flat num, den pairs) as ``count`` floats."""
+    if v is None:
+        return None
+    a = np.asarray(v, dtype=np.float64).ravel()
+    if a.size == 2 * count:
+        num, den = a[0::2], a[1::2]
+        if np.any(den == 0):
+            return None
+        a = num / den
+    if a.size != count or not np.all(np.isfinite(a)):
+        return None
+    return a
+
+
+class _TiffWarnings(logging.Handler):
+    """Collects tifffile's warnings while a file is parsed (a corrupt IFD only logs them)."""
+
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record):
+        self.messages.append(record.getMessage())
+
+
+def read_tiff_tags(path: str | os.PathLike) -> tuple[dict, dict, dict]:
+    """(IFD0 tags, raw IFD tags, EXIF tags) of a TIFF-based RAW by tag name; ValueError if corrupt.
+
+    The raw IFD is the one with NewSubfileType 0 and a CFA or LinearRaw photometric (IFD0 itself
+    for simple DNGs, a SubIFD for camera DNGs).
+    """
+    import tifffile
+
+    path = Path(path)
+    tl = logging.getLogger("tifffile")
+    handler = _TiffWarnings()
+    tl.addHandler(handler)
+    try:
+        with tifffile.TiffFile(path) as tf:
+            size = path.stat().st_size
+            ifd0 = tf.pages[0]
+            candidates = [ifd0]
+            if ifd0.subifds:
+                try:
+                    candidates += list(ifd0.pages)
+                except Exception as e:
+                    raise ValueError(f"unreadable SubIFDs ({e})") from e
+            raw = None
+            for page in candidates:
+                st = page.tags.get("NewSubfileType")
+                st = 0 if st is None else int(st.value)
+                if st == 0 and page.photometric in (32803, 34892):
+                    raw = page
+                    break
+            tags0 = {t.name: t.value for t in ifd0.tags.values()}
+            tags_raw = {t.name: t.value for t in raw.tags.values()} if raw is not None else {}
+            exif = dict(tags0.get("ExifTag") or {})
+            if raw is not None:
+                offsets = raw.dataoffsets
+                counts = raw.databytecounts
+                if not offsets or any(o + c > size for o, c in zip(offsets, counts, strict=True)):
+                    raise ValueError(
+                        f"image data end beyond the end of the file ({size} bytes): truncated"
+                    )
+    finally:
+        tl.removeHandler(handler)
+    if handler.messages:
+        raise ValueError("corrupt TIFF structure: " + "; ".join(handler.messages[:3]))
+    return tags0, tags_raw, exif
+
+
+# ---- writing ----
 def _rational(x: float, max_den: int = 1_000_000) -> list[int]:
     f = Fraction(float(x)).limit_denominator(max_den)
     return [f.numerator, f.denominator]

@@ -1,11 +1,12 @@
-"""write_dng: rawpy reads the CFA back bit-exact; the tags read back with tifffile."""
+"""write_dng: rawpy reads the CFA back bit-exact; the tags read back with tifffile and with
+read_tiff_tags (the reader the linearize stage uses)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from recon.io.dng import write_dng
+from recon.io.dng import read_tiff_tags, tag_number, tag_rationals, write_dng
 from recon.synth.sensor import SensorModel
 
 
@@ -95,3 +96,27 @@ def test_long_exposure_and_errors(tmp_path):
     with pytest.raises(ValueError, match="> 0"):
         write_dng(tmp_path / "a.dng", cfa, s, 0, 100, 2)
     assert not (tmp_path / "a.dng").exists()
+
+
+def test_read_tiff_tags_reads_what_write_dng_writes(tmp_path):
+    sensor = SensorModel()
+    cfa = np.full((32, 40), 700, np.uint16)
+    path = write_dng(tmp_path / "r.dng", cfa, sensor, 1 / 250, 400, 2.8, focal_length_mm=6.0,
+                     make="Acme", model="Cam", default_crop=(2, 2, 36, 28))
+    ifd0, raw, exif = read_tiff_tags(path)
+    assert "DNGVersion" in ifd0 and raw["ImageWidth"] == 40 and raw["ImageLength"] == 32
+    tag = {**ifd0, **exif, **raw}
+    assert tag_number(tag["ExposureTime"]) == pytest.approx(1 / 250)
+    assert tag_number(tag["FNumber"]) == pytest.approx(2.8)
+    assert tag_number(tag["FocalLength"]) == pytest.approx(6.0)
+    np.testing.assert_allclose(tag_rationals(tag["ColorMatrix1"], 9).reshape(3, 3), sensor.color_matrix_array,
+                               atol=1e-6)
+    np.testing.assert_allclose(tag_rationals(tag["AsShotNeutral"], 3), sensor.as_shot_neutral(), atol=1e-6)
+    assert tag_rationals(tag["DefaultCropSize"], 2).tolist() == [36, 28]
+    # values that are not numbers, and counts that do not fit
+    assert tag_number((1, 0)) is None and tag_number("n/a") is None and tag_number(None) is None
+    assert tag_rationals(tag["AsShotNeutral"], 9) is None
+    # a truncated file: the image data end beyond its end
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(ValueError, match="truncated"):
+        read_tiff_tags(path)

@@ -1,0 +1,121 @@
+"""Decoding one photo into linear Rec.709 before the capture's exposure scale.
+
+RAW (DNG specification 1.6, chapter 6): rawpy/LibRaw applies the LinearizationTable, subtracts
+the black level and demosaics in the camera's native space (no white balance, no colour
+conversion, linear 16-bit output scaled so the white level is 65535); the DNG DefaultCrop is
+then applied and the capture's camera -> Rec.709 matrix (:mod:`recon.linearize.color`) converts
+the colours. Clipped pixels are found on the RAW values before demosaicing: any sample in the
+pixel's neighbourhood at or above ``black + saturation_threshold * (white - black)``.
+JPEG/PNG: the sRGB decoding; a pixel with a channel at the largest code value is clipped.
+EXR: unchanged, nothing clipped.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from recon.io.images import ImageError, read_exr, read_ldr, srgb_to_linear
+from recon.linearize.metadata import View
+from recon.linearize.settings import LinearizeError, LinearizeSettings
+
+
+def _decode_raw(view: View, settings: LinearizeSettings) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Camera-native linear (H, W, 3) float32 (1 = white level), clipped mask (H, W), levels."""
+    import rawpy
+
+    path = view.path
+    try:
+        with rawpy.imread(str(path)) as raw:
+            raw_visible = raw.raw_image_visible.copy()
+            colors = raw.raw_colors_visible.copy()
+            black = np.asarray(raw.black_level_per_channel, dtype=np.float64)
+            white = libraw_white = float(raw.white_level)
+            cam_white = raw.camera_white_level_per_channel
+            if cam_white is not None and min(cam_white) > 0:
+                white = min(white, float(min(cam_white)))
+            if view.linearization_table_max is not None:
+                white = min(white, float(view.linearization_table_max))
+            if white <= black.max():
+                raise LinearizeError(f"{path}: white level {white} is not above the black level {black}")
+            rgb16 = raw.postprocess(
+                demosaic_algorithm=getattr(rawpy.DemosaicAlgorithm, settings.demosaic.upper()),
+                output_color=rawpy.ColorSpace.raw,
+                use_camera_wb=False,
+                use_auto_wb=False,
+                user_wb=[1.0, 1.0, 1.0, 1.0],
+                no_auto_bright=True,
+                no_auto_scale=False,
+                gamma=(1, 1),
+                output_bps=16,
+                user_flip=0,
+                adjust_maximum_thr=0.0,
+                highlight_mode=rawpy.HighlightMode.Clip,
+                fbdd_noise_reduction=rawpy.FBDDNoiseReductionMode.Off,
+            )
+    except rawpy.LibRawError as e:
+        raise LinearizeError(
+            f"{path}: the RAW data cannot be decoded ({type(e).__name__}: {e}); the file is "
+            "truncated or corrupt: copy it from the camera again or remove it from images/"
+        ) from e
+    if rgb16.shape[:2] != raw_visible.shape[:2]:
+        raise LinearizeError(
+            f"{path}: demosaiced size {rgb16.shape[:2]} differs from the RAW size "
+            f"{raw_visible.shape[:2]}; this RAW layout is not supported"
+        )
+    # clipped samples, on RAW values before demosaicing
+    if raw_visible.ndim == 3:  # LinearRaw: all channels per pixel
+        thr = black[: raw_visible.shape[2]] + settings.saturation_threshold * (white - black[: raw_visible.shape[2]])
+        clipped = np.any(raw_visible >= thr, axis=2)
+    else:
+        black_px = black[np.clip(colors, 0, 3)]
+        clipped = raw_visible >= black_px + settings.saturation_threshold * (white - black_px)
+    if settings.saturation_radius > 0 and clipped.any():
+        import cv2
+
+        k = 2 * settings.saturation_radius + 1
+        clipped = cv2.dilate(clipped.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+    # LibRaw scales (raw - black) by 65535 / (its white level - black); rescale so that the
+    # effective white level (a LinearizationTable may end below WhiteLevel) is 1
+    libraw_white = float(libraw_white)
+    b = float(np.mean(black))
+    cam = rgb16.astype(np.float32) * np.float32((libraw_white - b) / (white - b) / 65535.0)
+    if view.default_crop is not None:
+        x, y, w, h = view.default_crop
+        H, W = cam.shape[:2]
+        if x < 0 or y < 0 or w <= 0 or h <= 0 or x + w > W or y + h > H:
+            raise LinearizeError(
+                f"{path}: DefaultCrop (origin {x},{y}, size {w}x{h}) does not fit the {W}x{H} image"
+            )
+        cam = cam[y : y + h, x : x + w]
+        clipped = clipped[y : y + h, x : x + w]
+    levels = {"black_level": black.tolist(), "white_level": white}
+    return np.ascontiguousarray(cam), clipped, levels
+
+
+def _as_rgb(img: np.ndarray) -> np.ndarray:
+    if img.shape[2] == 1:
+        return np.repeat(img, 3, axis=2)
+    return img[:, :, :3]
+
+
+def decode_view(view: View, settings: LinearizeSettings, matrix: np.ndarray | None) -> tuple:
+    """Linear Rec.709 (H, W, 3) float32 before the exposure scale, clipped mask, levels."""
+    if view.kind == "raw":
+        cam, clipped, levels = _decode_raw(view, settings)
+        rgb = cam.reshape(-1, 3) @ matrix.T.astype(np.float32)
+        return rgb.reshape(cam.shape).astype(np.float32), clipped, levels
+    if view.kind == "ldr":
+        try:
+            img, bits = read_ldr(view.path)
+        except ImageError as e:
+            raise LinearizeError(str(e)) from e
+        img = _as_rgb(img)
+        clipped = np.any(img >= 1.0, axis=2)
+        return srgb_to_linear(img), clipped, {"bits": bits}
+    try:
+        img = _as_rgb(read_exr(view.path))
+    except ImageError as e:
+        raise LinearizeError(str(e)) from e
+    if not np.all(np.isfinite(img)):
+        raise LinearizeError(f"{view.path}: the EXR contains NaN or Inf values; fix the file")
+    return img.astype(np.float32), np.zeros(img.shape[:2], bool), {}

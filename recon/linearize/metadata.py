@@ -1,0 +1,241 @@
+"""What a photo's file says about it: exposure, focal length, camera, and for RAW files the
+black/white levels' companions (DefaultCrop, LinearizationTable), the as-shot camera neutral and
+the DNG colour tags.
+
+RAW files: the DNG tags through :func:`recon.io.dng.read_tiff_tags` (rawpy's
+``rgb_xyz_matrix`` is zeros for DNGs), LibRaw's values where a tag is missing; other TIFF-based
+RAWs (CR2, NEF, ARW, ...) take LibRaw's colour matrix and white balance. JPEG/PNG: the EXIF
+tags through Pillow. EXR: nothing (scene-linear, unchanged).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+
+from recon.io.dng import (
+    CALIBRATION_ILLUMINANT_D65,
+    FULL_FRAME_DIAGONAL_MM,
+    read_tiff_tags,
+    tag_number,
+    tag_rationals,
+)
+from recon.io.images import HDR_EXTENSIONS, IMAGE_EXTENSIONS, LDR_EXTENSIONS, RAW_EXTENSIONS
+from recon.linearize.color import D65_XY, xy_to_xyz, xyz_to_camera
+from recon.linearize.settings import LinearizeError
+
+log = logging.getLogger(__name__)
+
+
+def exposure_value(exposure_time: float | None, iso: float | None, f_number: float | None) -> float:
+    """H = exposure_time * iso / 100 / f_number**2; a missing factor counts as 1 (ISO 100)."""
+    t = 1.0 if exposure_time is None else exposure_time
+    s = 1.0 if iso is None else iso / 100.0
+    n = 1.0 if f_number is None else f_number
+    return float(t * s / n**2)
+
+
+@dataclasses.dataclass
+class View:
+    """The metadata of one photo (None: the file does not say)."""
+
+    path: Path
+    kind: str  # 'raw' | 'ldr' | 'hdr'
+    exposure_time: float | None = None
+    iso: float | None = None
+    f_number: float | None = None
+    focal_length_mm: float | None = None
+    focal_length_35mm: float | None = None
+    focal_plane_px_per_mm: float | None = None
+    neutral: np.ndarray | None = None  # as-shot camera neutral (RAW)
+    color: dict | None = None  # colour tags (RAW)
+    is_dng: bool = False
+    default_crop: tuple | None = None  # (x, y, w, h)
+    linearization_table_max: int | None = None
+    baseline_exposure: float | None = None
+    opcode_lists: list = dataclasses.field(default_factory=list)
+    make: str | None = None
+    model: str | None = None
+
+    @property
+    def stem(self) -> str:
+        return self.path.stem
+
+
+def _read_raw_meta(path: Path) -> View:
+    import rawpy
+
+    view = View(path, "raw")
+    with open(path, "rb") as f:
+        is_tiff = f.read(4) in (b"II*\x00", b"MM\x00*")
+    tags0, tags_raw, exif = {}, {}, {}
+    if path.suffix.lower() == ".dng":
+        try:
+            tags0, tags_raw, exif = read_tiff_tags(path)
+        except Exception as e:
+            raise LinearizeError(
+                f"{path}: corrupt or truncated RAW file ({e}); "
+                "copy the file from the camera again or remove it from images/"
+            ) from e
+    elif is_tiff:  # TIFF-based camera RAW (CR2, NEF, ARW, ...): EXIF when tifffile can read it
+        try:
+            tags0, tags_raw, exif = read_tiff_tags(path)
+        except Exception as e:
+            log.warning("%s: TIFF metadata not readable (%s); using LibRaw's", path, e)
+    view.is_dng = "DNGVersion" in tags0
+    if path.suffix.lower() == ".dng" and not view.is_dng:
+        raise LinearizeError(f"{path}: not a DNG file (no DNGVersion tag); re-export it as DNG")
+
+    def tag(name):
+        for d in (tags_raw, exif, tags0):
+            if name in d:
+                return d[name]
+        return None
+
+    try:
+        with rawpy.RawPy() as raw:
+            raw.open_file(str(path))
+            other = raw.other
+            desc = raw.color_desc
+            cam_wb = np.asarray(raw.camera_whitebalance, dtype=np.float64)
+            rgb_xyz = np.asarray(raw.rgb_xyz_matrix, dtype=np.float64).copy()
+    except rawpy.LibRawError as e:
+        raise LinearizeError(
+            f"{path}: not a RAW file rawpy can read ({type(e).__name__}: {e}); "
+            "the file is corrupt or truncated, or the camera is not supported by LibRaw"
+        ) from e
+    if desc[:3] != b"RGB":
+        raise LinearizeError(f"{path}: colour filter {desc!r} is not RGB; only RGB sensors are supported")
+
+    view.exposure_time = tag_number(tag("ExposureTime")) or (other.shutter_speed or None)
+    view.iso = tag_number(tag("ISOSpeedRatings")) or tag_number(tag("PhotographicSensitivity")) or (other.iso_speed or None)
+    view.f_number = tag_number(tag("FNumber")) or (other.aperture or None)
+    view.focal_length_mm = tag_number(tag("FocalLength")) or (other.focal_length or None)
+    view.focal_length_35mm = tag_number(tag("FocalLengthIn35mmFilm")) or None
+    view.focal_plane_px_per_mm = _focal_plane_px_per_mm(tag)
+    view.make = tag("Make")
+    view.model = tag("Model") or tag("UniqueCameraModel")
+
+    if view.is_dng:
+        color = {
+            "color_matrix_1": tag_rationals(tag("ColorMatrix1"), 9),
+            "color_matrix_2": tag_rationals(tag("ColorMatrix2"), 9),
+            "forward_matrix_1": tag_rationals(tag("ForwardMatrix1"), 9),
+            "forward_matrix_2": tag_rationals(tag("ForwardMatrix2"), 9),
+            "camera_calibration_1": tag_rationals(tag("CameraCalibration1"), 9),
+            "camera_calibration_2": tag_rationals(tag("CameraCalibration2"), 9),
+            "analog_balance": tag_rationals(tag("AnalogBalance"), 3),
+            "illuminant_1": int(tag_number(tag("CalibrationIlluminant1")) or 0),
+            "illuminant_2": int(tag_number(tag("CalibrationIlluminant2")) or 0),
+        }
+        if color["color_matrix_1"] is None:
+            raise LinearizeError(
+                f"{path}: the DNG has no usable ColorMatrix1 (missing or corrupt), so camera colour "
+                "cannot be converted to Rec.709; re-export the DNG with its colour profile"
+            )
+        neutral = tag_rationals(tag("AsShotNeutral"), 3)
+        if neutral is None and tag("AsShotWhiteXY") is not None:
+            xy = tag_rationals(tag("AsShotWhiteXY"), 2)
+            if xy is not None:
+                neutral = xyz_to_camera(color, xy) @ xy_to_xyz(xy)
+        if neutral is None:
+            neutral = xyz_to_camera(color, D65_XY) @ xy_to_xyz(D65_XY)
+            log.warning("%s: no AsShotNeutral; assuming D65 light", path)
+        view.neutral = neutral
+        view.color = color
+        origin = tag_rationals(tag("DefaultCropOrigin"), 2)
+        size = tag_rationals(tag("DefaultCropSize"), 2)
+        if origin is not None and size is not None:
+            view.default_crop = tuple(int(round(v)) for v in (*origin, *size))
+        lt = tag("LinearizationTable")
+        if lt is not None:
+            view.linearization_table_max = int(np.max(np.asarray(lt)))
+        view.baseline_exposure = tag_number(tag_rationals(tag("BaselineExposure"), 1))
+        view.opcode_lists = [n for n in ("OpcodeList1", "OpcodeList2", "OpcodeList3") if tag(n) is not None]
+        if view.opcode_lists:
+            log.warning(
+                "%s: DNG %s not applied (lens shading GainMap / distortion opcodes are ignored)",
+                path, ", ".join(view.opcode_lists),
+            )
+    else:
+        cm = rgb_xyz[:3]
+        if not np.any(cm):
+            raise LinearizeError(
+                f"{path}: LibRaw has no colour matrix for this camera; convert the file to DNG "
+                "(Adobe DNG Converter) so it carries one"
+            )
+        view.color = {"color_matrix_1": cm.ravel(), "illuminant_1": CALIBRATION_ILLUMINANT_D65}
+        if cam_wb[:3].min() <= 0:
+            view.neutral = cm @ xy_to_xyz(D65_XY)
+            log.warning("%s: no as-shot white balance; assuming D65 light", path)
+        else:
+            view.neutral = 1.0 / cam_wb[:3]
+    if view.neutral is None or not np.all(np.isfinite(view.neutral)) or np.min(view.neutral) <= 0:
+        raise LinearizeError(f"{path}: unusable as-shot white balance {view.neutral}")
+    view.neutral = np.asarray(view.neutral, dtype=np.float64) / float(np.max(view.neutral))
+    return view
+
+
+def _focal_plane_px_per_mm(tag) -> float | None:
+    res = tag_number(tag("FocalPlaneXResolution"))
+    unit = tag_number(tag("FocalPlaneResolutionUnit"))
+    mm = {2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}.get(int(unit) if unit else 2)
+    if not res or res <= 0 or mm is None:
+        return None
+    return res / mm
+
+
+def _read_ldr_meta(path: Path) -> View:
+    from PIL import Image, UnidentifiedImageError
+
+    view = View(path, "ldr")
+    try:
+        with Image.open(path) as im:
+            exif = im.getexif()
+            sub = dict(exif.get_ifd(0x8769)) if exif else {}
+    except (UnidentifiedImageError, OSError, SyntaxError) as e:
+        raise LinearizeError(f"{path}: not a readable {path.suffix} image ({e}); re-export it") from e
+    tags = {**dict(exif or {}), **sub}
+
+    def get(code):
+        return tag_number(tags.get(code))
+
+    view.exposure_time = get(0x829A)
+    view.f_number = get(0x829D)
+    view.iso = get(0x8827)
+    view.focal_length_mm = get(0x920A)
+    view.focal_length_35mm = get(0xA405) or None
+    view.make = tags.get(0x010F)
+    view.model = tags.get(0x0110)
+    # the focal plane resolution of a JPEG often refers to the sensor, not the (resized) JPEG
+    return view
+
+
+def read_meta(path: Path) -> View:
+    """The metadata of the photo ``path`` by its kind (extension); LinearizeError for a file that
+    cannot be read."""
+    ext = path.suffix.lower()
+    if ext in RAW_EXTENSIONS:
+        return _read_raw_meta(path)
+    if ext in LDR_EXTENSIONS:
+        return _read_ldr_meta(path)
+    if ext in HDR_EXTENSIONS:
+        return View(path, "hdr")
+    raise LinearizeError(
+        f"{path}: unknown image type '{path.suffix}'; supported: {', '.join(IMAGE_EXTENSIONS)}"
+    )
+
+
+def focal_length_px(view: View, width: int, height: int) -> tuple[float | None, str | None]:
+    """The focal length in pixels of a ``width`` x ``height`` image and where it came from
+    (the focal plane resolution, or the 35 mm equivalent over the diagonal); (None, None)
+    when the file says neither."""
+    if view.focal_length_mm and view.focal_plane_px_per_mm:
+        return view.focal_length_mm * view.focal_plane_px_per_mm, "focal_plane_resolution"
+    if view.focal_length_35mm:
+        return view.focal_length_35mm * math.hypot(width, height) / FULL_FRAME_DIAGONAL_MM, "35mm_equivalent"
+    return None, None
