@@ -1,8 +1,6 @@
 # recon: flash photos of an object -> relightable 3D asset.
 # Stages (DESIGN section 2): linearize -> masks -> poses -> init_mesh -> uv -> optimize -> export -> report
 #   snakemake --cores 2 all [--config captures=DIR results=DIR preset=draft|balanced|accurate]
-from pathlib import Path
-
 from snakemake.utils import min_version, validate
 
 min_version("9.0")
@@ -18,13 +16,16 @@ include: "workflow/rules/common.smk"
 
 
 rule all:
+    default_target: True
     input:
         get_all_targets,
-    default_target: True
 
 
-for _stage in STAGES:
-    if Path(workflow.basedir, "workflow", "rules", f"{_stage}.smk").exists():
-        INCLUDED_STAGES.append(_stage)
-
-        include: f"workflow/rules/{_stage}.smk"
+include: "workflow/rules/linearize.smk"
+include: "workflow/rules/masks.smk"
+include: "workflow/rules/poses.smk"
+include: "workflow/rules/init_mesh.smk"
+include: "workflow/rules/uv.smk"
+include: "workflow/rules/optimize.smk"
+include: "workflow/rules/export.smk"
+include: "workflow/rules/report.smk"

@@ -423,7 +423,9 @@ def _planned_jobs(repo_root, captures, results, target):
     return {m.group(1) for m in re.finditer(r"^(\w+)\s+\d+$", table, re.M)} - {"total"}
 
 
-def test_snakemake_skips_poses_and_init_mesh_when_given(repo_root, tmp_path):
+def test_snakemake_skips_sfm_and_init_mesh_when_given(repo_root, tmp_path):
+    """Given cameras skip SfM but still go through poses (the pass-through writes capture.yaml's
+    light_intensity into poses/cameras.json); a given init_mesh.ply skips init_mesh."""
     caps = tmp_path / "captures"
     for name in ("given", "cams_only", "sfm"):
         for k in range(3):
@@ -436,5 +438,5 @@ def test_snakemake_skips_poses_and_init_mesh_when_given(repo_root, tmp_path):
     jobs = {name: _planned_jobs(repo_root, caps, res, f"{res}/{name}/uv/mesh.obj")
             for name in ("given", "cams_only", "sfm")}
     assert jobs["given"] == {"uv"}
-    assert jobs["cams_only"] == {"linearize", "masks", "init_mesh", "uv"}
+    assert jobs["cams_only"] == {"linearize", "masks", "poses", "init_mesh", "uv"}
     assert jobs["sfm"] == {"linearize", "masks", "poses", "init_mesh", "uv"}

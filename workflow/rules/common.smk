@@ -9,8 +9,6 @@ CAPTURES_ROOT = config["captures"]
 PRESET = config["preset"]
 PRESETS_DIR = str(Path(workflow.basedir) / "config" / "presets")
 CAPTURES = rc.discover_captures(CAPTURES_ROOT)
-STAGES = list(rc.STAGES)
-INCLUDED_STAGES = []  # filled by the Snakefile as it includes workflow/rules/<stage>.smk
 
 
 wildcard_constraints:
@@ -24,7 +22,9 @@ def capture_dir(capture):
 def get_images(wildcards):
     """The capture's input photos (every file in images/ with a known extension)."""
     folder = capture_dir(wildcards.capture) / "images"
-    return sorted(str(p) for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+    return sorted(
+        str(p) for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS
+    )
 
 
 def get_image_stems(wildcards):
@@ -35,7 +35,9 @@ def get_settings(stage):
     """A params function: the merged settings dict of ``stage`` for the capture."""
 
     def settings(wildcards):
-        return rc.stage_settings(stage, PRESET, capture_dir(wildcards.capture), PRESETS_DIR)
+        return rc.stage_settings(
+            stage, PRESET, capture_dir(wildcards.capture), PRESETS_DIR
+        )
 
     return settings
 
@@ -61,24 +63,8 @@ def get_capture_dir(wildcards):
 
 
 def get_all_targets(wildcards):
-    """The last output of every implemented stage, for every capture."""
-    finals = {
-        "report": "report/index.html",
-        "export": "export/asset.glb",
-        "optimize": "optimize/mesh.obj",
-        "uv": "uv/mesh.obj",
-        "init_mesh": "init_mesh/mesh.ply",
-        "poses": "poses/cameras.json",
-        "masks": "masks/masks.json",
-        "linearize": "linear/linear.json",
-    }
-    targets = []
-    for capture in CAPTURES:
-        for stage, path in finals.items():
-            if stage in INCLUDED_STAGES:
-                targets.append(f"{RESULTS}/{capture}/{path}")
-                break
-    return targets
+    """The report of every capture (it needs every other stage's outputs)."""
+    return [f"{RESULTS}/{capture}/report/index.html" for capture in CAPTURES]
 
 
 # ---- Input functions of the geometry stages (given files skip the stages that make them) ----
@@ -89,13 +75,17 @@ def get_given_masks(wildcards):
 
 
 def get_given_masks_dir(wildcards):
-    return str(capture_dir(wildcards.capture) / "masks") if has_masks(wildcards.capture) else ""
+    return (
+        str(capture_dir(wildcards.capture) / "masks")
+        if has_masks(wildcards.capture)
+        else ""
+    )
 
 
 def get_cameras(wildcards):
-    """cameras.json for later stages: the capture's own (no SfM), else the poses stage's."""
-    if has_cameras(wildcards.capture):
-        return str(capture_dir(wildcards.capture) / "cameras.json")
+    """poses/cameras.json for later stages: SfM's cameras, or the capture's own passed through
+    (validated, with capture.yaml's light_intensity written in): one route for every capture.
+    """
     return f"{RESULTS}/{wildcards.capture}/poses/cameras.json"
 
 
@@ -128,7 +118,18 @@ def get_view_masks(wildcards):
 
 
 def get_given_cameras(wildcards):
-    return get_cameras(wildcards) if has_cameras(wildcards.capture) else ""
+    """The capture's own cameras.json, or "" (SfM)."""
+    return (
+        str(capture_dir(wildcards.capture) / "cameras.json")
+        if has_cameras(wildcards.capture)
+        else ""
+    )
+
+
+def get_given_cameras_input(wildcards):
+    """As get_given_cameras, as an input list (editing the file reruns poses)."""
+    given = get_given_cameras(wildcards)
+    return [given] if given else []
 
 
 def get_init_mesh(wildcards):

@@ -19,9 +19,9 @@ rule export:
         f"{RESULTS}/{{capture}}/logs/export.log",
     benchmark:
         f"{RESULTS}/{{capture}}/benchmarks/export.tsv"
-    params:
-        settings=get_settings("export"),
     conda:
         "../../envs/recon.yaml"
+    params:
+        settings=get_settings("export"),
     script:
         "../scripts/export.py"

@@ -16,11 +16,11 @@ rule init_mesh:
         f"{RESULTS}/{{capture}}/logs/init_mesh.log",
     benchmark:
         f"{RESULTS}/{{capture}}/benchmarks/init_mesh.tsv"
+    conda:
+        "../../envs/recon.yaml"
     params:
         masks_dir=get_view_masks_dir,
         given=get_given_init_mesh,
         settings=get_settings("init_mesh"),
-    conda:
-        "../../envs/recon.yaml"
     script:
         "../scripts/init_mesh.py"

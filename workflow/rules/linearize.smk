@@ -13,10 +13,10 @@ rule linearize:
         f"{RESULTS}/{{capture}}/logs/linearize.log",
     benchmark:
         f"{RESULTS}/{{capture}}/benchmarks/linearize.tsv"
+    conda:
+        "../../envs/recon.yaml"
     params:
         capture_dir=get_capture_dir,
         settings=get_settings("linearize"),
-    conda:
-        "../../envs/recon.yaml"
     script:
         "../scripts/linearize.py"

@@ -14,11 +14,11 @@ rule masks:
         f"{RESULTS}/{{capture}}/logs/masks.log",
     benchmark:
         f"{RESULTS}/{{capture}}/benchmarks/masks.tsv"
+    conda:
+        "../../envs/recon.yaml"
     params:
         given_dir=get_given_masks_dir,
         stems=get_image_stems,
         settings=get_settings("masks"),
-    conda:
-        "../../envs/recon.yaml"
     script:
         "../scripts/masks.py"

@@ -23,6 +23,8 @@ rule optimize:
         f"{RESULTS}/{{capture}}/logs/optimize.log",
     benchmark:
         f"{RESULTS}/{{capture}}/benchmarks/optimize.tsv"
+    conda:
+        "../../envs/recon.yaml"
     params:
         views_dir=get_views_dir,
         masks_dir=get_view_masks_dir,

@@ -1,17 +1,17 @@
 # Poses (DESIGN section 2): cameras.json in the object frame, the COLMAP model and the views
 # undistorted to pinhole. recon.poses.run_poses replaces the whole poses/ folder atomically.
 #
-# Skipping SfM: a capture with its own cameras.json never needs this rule. Every consumer of
-# cameras and pinhole views asks the input functions below, which point straight at the
-# capture's cameras.json, the linear/ images and the masks/ folder in that case (the photos
-# are pinhole already, DESIGN section 1), so Snakemake does not schedule `poses` at all.
-# Asked for explicitly, the rule passes the given cameras through (validated).
+# Skipping SfM: a capture with its own cameras.json runs this rule as a pass-through: the given
+# cameras are validated and written to poses/cameras.json with capture.yaml's light_intensity
+# (one route for that value, whichever way the cameras came). The pinhole views are then the
+# linear/ images and the masks/ folder (the photos are pinhole already, DESIGN section 1).
 
 
 rule poses:
     input:
         linear=f"{RESULTS}/{{capture}}/linear/linear.json",
         masks=f"{RESULTS}/{{capture}}/masks/masks.json",
+        given=get_given_cameras_input,
     output:
         cameras=f"{RESULTS}/{{capture}}/poses/cameras.json",
         diagnostics=f"{RESULTS}/{{capture}}/poses/poses.json",
@@ -19,10 +19,10 @@ rule poses:
         f"{RESULTS}/{{capture}}/logs/poses.log",
     benchmark:
         f"{RESULTS}/{{capture}}/benchmarks/poses.tsv"
+    conda:
+        "../../envs/recon.yaml"
     params:
         given=get_given_cameras,
         settings=get_settings("poses"),
-    conda:
-        "../../envs/recon.yaml"
     script:
         "../scripts/poses.py"

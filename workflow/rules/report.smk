@@ -25,12 +25,12 @@ rule report:
         f"{RESULTS}/{{capture}}/logs/report.log",
     benchmark:
         f"{RESULTS}/{{capture}}/benchmarks/report.tsv"
+    conda:
+        "../../envs/recon.yaml"
     params:
         capture_dir=get_capture_dir,
         undistorted=f"{RESULTS}/{{capture}}/poses/undistorted",
         benchmarks=f"{RESULTS}/{{capture}}/benchmarks",
         settings=get_settings("report"),
-    conda:
-        "../../envs/recon.yaml"
     script:
         "../scripts/report.py"

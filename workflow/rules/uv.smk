@@ -12,9 +12,9 @@ rule uv:
         f"{RESULTS}/{{capture}}/logs/uv.log",
     benchmark:
         f"{RESULTS}/{{capture}}/benchmarks/uv.tsv"
-    params:
-        settings=get_settings("uv"),
     conda:
         "../../envs/recon.yaml"
+    params:
+        settings=get_settings("uv"),
     script:
         "../scripts/uv.py"

@@ -1,0 +1,10 @@
+#!/usr/bin/env bash
+# The checks the field's model projects run (CI calls this after set-up): ruff on the Python,
+# snakefmt on the Snakemake files, and Snakemake's own linter on the workflow.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+.venv/bin/ruff check recon tests bench workflow tools
+.venv/bin/snakefmt --check Snakefile workflow/rules/
+out=$(.venv/bin/snakemake --lint --config captures=captures results="$(mktemp -d)" 2>&1) || { echo "$out"; exit 1; }
+echo "$out" | grep -q "Congratulations, your workflow is in a good condition" || { echo "$out"; exit 1; }
+echo "[lint] ruff, snakefmt and snakemake --lint clean"
