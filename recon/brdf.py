@@ -18,6 +18,20 @@ Shapes: per-point scalars (cosines, ``r``, distances) are ``(...)``; colours (``
 Everything broadcasts. ``G1(c) / (2 c) = 1 / (c + sqrt(alpha^2 + (1 - alpha^2) c^2))`` is used
 for the specular term, so it stays finite as the cosines go to 0. Both sides of the surface
 are not modelled: where n.l <= 0 or n.v <= 0, f = 0 (front side only).
+
+The model exists four times, each for its own machinery, each tied to this reference by tests
+(change one, change all four):
+
+- here, numpy float64: the reference (``tests/test_brdf.py``: known values, normalization of D,
+  Smith G1's projected area, reciprocity, energy bounds, extremes);
+- ``recon/render/collocated.py`` ``CollocatedRenderer._shade``, drjit, the differentiable renderer
+  (``tests/render/test_collocated.py::test_forward_known_values_fronto_parallel_quad`` and the
+  comparison with Mitsuba's render through the plugin below);
+- ``recon/optimize/material.py`` ``_radiance``, torch, the G-buffer shading of the material fits
+  (``tests/optimize/test_material.py::test_shading_matches_reference_brdf``);
+- ``recon/render/mitsuba_bsdf.py``, a Mitsuba BSDF plugin: synthetic captures, reference renders
+  and relighting (``tests/render/test_mitsuba_bsdf.py::test_eval_matches_reference``, a chi-square
+  test of its sampling).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Tabletop scenes: the object standing on a large textured table, photographed by hand.
 
-What a person does (DESIGN section 6): puts the object on a table, walks around it with the
+What a person does (DESIGN section 7): puts the object on a table, walks around it with the
 phone 15-60 degrees above the table, the flash lighting the table around the object about as
 brightly as the object itself. The base is never seen. This module makes that scene for
 :func:`recon.synth.capture.make_capture` (``scene="tabletop"``):
