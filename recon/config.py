@@ -118,6 +118,34 @@ def stage_settings(
     return merged
 
 
+def effective_settings(
+    stage: str,
+    preset: str,
+    capture_dir: str | os.PathLike | None = None,
+    presets_dir: str | os.PathLike | None = None,
+) -> dict:
+    """:func:`stage_settings` without its bookkeeping keys: the values the stage uses.
+
+    This is what a Snakemake rule tracks as ``params``: switching to a preset whose section of
+    this stage is equal, or moving the captures folder, changes nothing here and so reruns
+    nothing (the preset's name and the source paths are not part of it).
+    """
+    return {k: v for k, v in stage_settings(stage, preset, capture_dir, presets_dir).items()
+            if not k.startswith("_")}
+
+
+def job_settings(stage: str, job, presets_dir: str | os.PathLike | None = None) -> dict:
+    """Inside a Snakemake job: the stage's settings with ``_sources`` and ``_preset`` again.
+
+    ``job`` is the ``snakemake`` object Snakemake injects into a rule's script (duck-typed: its
+    ``config["captures"]``, ``config["preset"]`` and ``wildcards.capture``; ``recon`` never
+    imports Snakemake). The values equal the rule's tracked ``params.settings``; the sources
+    name the files in error messages.
+    """
+    capture_dir = Path(job.config["captures"]) / job.wildcards.capture
+    return stage_settings(stage, job.config["preset"], capture_dir, presets_dir)
+
+
 T = typing.TypeVar("T")
 
 

@@ -32,10 +32,12 @@ def get_image_stems(wildcards):
 
 
 def get_settings(stage):
-    """A params function: the merged settings dict of ``stage`` for the capture."""
+    """A params function: the effective settings of ``stage`` for the capture (no preset name,
+    no source paths: only a change of the values reruns the stage; the job's script reads the
+    same values with their sources through recon.config.job_settings)."""
 
     def settings(wildcards):
-        return rc.stage_settings(
+        return rc.effective_settings(
             stage, PRESET, capture_dir(wildcards.capture), PRESETS_DIR
         )
 

@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from recon.config import build_settings
+from recon.config import build_settings, job_settings
 from recon.init_mesh import InitMeshSettings, run_init_mesh
 from recon.logs import configure
 
@@ -11,6 +11,6 @@ run_init_mesh(
     snakemake.input.cameras,  # noqa: F821
     snakemake.params.masks_dir,  # noqa: F821
     Path(snakemake.output.mesh).parent,  # noqa: F821
-    build_settings(InitMeshSettings, snakemake.params.settings),  # noqa: F821
+    build_settings(InitMeshSettings, job_settings("init_mesh", snakemake)),  # noqa: F821
     given_mesh=snakemake.params.given or None,  # noqa: F821
 )

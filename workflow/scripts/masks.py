@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from recon.config import build_settings
+from recon.config import build_settings, job_settings
 from recon.logs import configure
 from recon.masks import MaskSettings, run_masks
 
@@ -10,7 +10,7 @@ configure(snakemake.log[0])  # noqa: F821 (injected by Snakemake)
 run_masks(
     Path(snakemake.input.linear).parent,  # noqa: F821
     Path(snakemake.output.summary).parent,  # noqa: F821
-    build_settings(MaskSettings, snakemake.params.settings),  # noqa: F821
+    build_settings(MaskSettings, job_settings("masks", snakemake)),  # noqa: F821
     given_dir=snakemake.params.given_dir or None,  # noqa: F821
     stems=list(snakemake.params.stems),  # noqa: F821
 )

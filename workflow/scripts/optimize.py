@@ -2,6 +2,7 @@
 
 from pathlib import Path
 
+from recon.config import job_settings
 from recon.logs import configure
 from recon.optimize import optimize_from_dirs, settings_from_dict
 
@@ -12,5 +13,5 @@ optimize_from_dirs(
     snakemake.input.cameras,  # noqa: F821
     snakemake.input.mesh,  # noqa: F821
     Path(snakemake.output.mesh).parent,  # noqa: F821
-    settings_from_dict(snakemake.params.settings),  # noqa: F821
+    settings_from_dict(job_settings("optimize", snakemake)),  # noqa: F821
 )

@@ -1,16 +1,12 @@
 """Snakemake adapter of the report stage: calls recon.report.make_report (no logic here)."""
 
-import logging
 from pathlib import Path
 
-from recon.config import build_settings
+from recon.config import build_settings, job_settings
+from recon.logs import configure
 from recon.report import ReportSettings, make_report
 
-logging.basicConfig(
-    filename=snakemake.log[0],  # noqa: F821 (injected by Snakemake)
-    level=logging.INFO,
-    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-)
+configure(snakemake.log[0])  # noqa: F821 (injected by Snakemake)
 make_report(
     capture=snakemake.wildcards.capture,  # noqa: F821
     optimize_dir=Path(snakemake.input.mesh).parent,  # noqa: F821
@@ -19,8 +15,8 @@ make_report(
     image_dirs=[snakemake.params.undistorted, Path(snakemake.input.linear).parent],  # noqa: F821
     mask_dirs=[Path(snakemake.input.masks).parent],  # noqa: F821
     out_dir=Path(snakemake.output.html).parent,  # noqa: F821
-    settings=build_settings(ReportSettings, snakemake.params.settings),  # noqa: F821
+    settings=build_settings(ReportSettings, job_settings("report", snakemake)),  # noqa: F821
     gt_dir=Path(snakemake.params.capture_dir) / "gt",  # noqa: F821 (skipped when absent)
     benchmarks_dir=snakemake.params.benchmarks,  # noqa: F821
-    preset=snakemake.params.settings.get("_preset"),  # noqa: F821
+    preset=job_settings("report", snakemake).get("_preset"),  # noqa: F821
 )

@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from recon.config import build_settings
+from recon.config import build_settings, job_settings
 from recon.logs import configure
 from recon.uv import UVSettings, run_uv
 
@@ -10,5 +10,5 @@ configure(snakemake.log[0])  # noqa: F821 (injected by Snakemake)
 run_uv(
     snakemake.input.mesh,  # noqa: F821
     Path(snakemake.output.mesh).parent,  # noqa: F821
-    build_settings(UVSettings, snakemake.params.settings),  # noqa: F821
+    build_settings(UVSettings, job_settings("uv", snakemake)),  # noqa: F821
 )
