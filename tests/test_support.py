@@ -1,0 +1,135 @@
+"""The support plane: the convention, its file, and RANSAC in sparse points seen by cameras."""
+
+import numpy as np
+import pytest
+
+from recon.io.cameras import Camera, CameraSet, intrinsics, look_at
+from recon.metrics import Similarity
+from recon.support import (PlaneError, PlaneSettings, SupportPlane, aim_point, fit_support_plane, load_plane,
+                           save_plane, scene_scale)
+
+
+def _ring(n=16, elevations=(20.0, 45.0), distance=5.0, target=(0.0, 0.0, 0.0)):
+    K = intrinsics(64, 48, 50.0)
+    frames = []
+    for k in range(n):
+        el = np.radians(elevations[k % len(elevations)])
+        az = 2 * np.pi * k / n
+        eye = np.asarray(target) + distance * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        frames.append(Camera(f"images/{k:04d}.exr", 64, 48, K.copy(), look_at(eye, target)))
+    return CameraSet(tuple(frames))
+
+
+def _scene(rng, n_table=600, n_object=250, n_outliers=40, table_z=-0.8):
+    """Points of a table (a noisy disc at table_z), an object (a sphere standing on it) and outliers."""
+    r = 3.0 * np.sqrt(rng.random(n_table))
+    a = rng.uniform(0, 2 * np.pi, n_table)
+    table = np.stack([r * np.cos(a), r * np.sin(a), table_z + rng.normal(0, 0.003, n_table)], 1)
+    d = rng.normal(size=(n_object, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    obj = 0.8 * d
+    obj = obj[obj[:, 2] > -0.7]  # the part above the table
+    out = rng.uniform(-3, 3, (n_outliers, 3))
+    return np.concatenate([table, obj, out])
+
+
+def _transform(cams: CameraSet, sim: Similarity) -> CameraSet:
+    out = []
+    for c in cams:
+        W = c.world_to_camera
+        R2 = W[:3, :3] @ sim.rotation.T
+        t2 = sim.scale * W[:3, 3] - R2 @ sim.translation
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = R2, t2
+        out.append(Camera(c.image, c.width, c.height, c.K, M))
+    return CameraSet(tuple(out))
+
+
+def test_plane_convention():
+    p = SupportPlane(np.array([0.0, 0.0, 2.0]), 1.0)  # 2z + 1 = 0
+    np.testing.assert_allclose(p.normal, [0, 0, 1])
+    assert p.offset == pytest.approx(0.5)
+    np.testing.assert_allclose(p.point, [0, 0, -0.5])
+    np.testing.assert_allclose(p.height(np.array([[1.0, 2.0, 0.5], [0.0, 0.0, -1.0]])), [1.0, -0.5])
+    np.testing.assert_allclose(p.project(np.array([3.0, 1.0, 7.0])), [3.0, 1.0, -0.5])
+    t = p.ray_hit(np.array([0.0, 0.0, 1.5]), np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, 0.0, 2.0]]))
+    np.testing.assert_allclose(t, [2.0, np.inf, -1.0])
+    B = p.basis()
+    np.testing.assert_allclose(B @ B.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(B[2], p.normal)
+    q = SupportPlane.through([1.0, 2.0, 3.0], [1.0, 1.0, 0.0])
+    assert q.height(np.array([1.0, 2.0, 3.0])) == pytest.approx(0.0)
+    with pytest.raises(PlaneError, match="nonzero normal"):
+        SupportPlane(np.zeros(3), 1.0)
+
+
+def test_plane_file_round_trip(tmp_path):
+    p = SupportPlane.through([0.1, -0.2, -0.7], [0.1, 0.2, 1.0])
+    save_plane(tmp_path / "plane.json", p, source="test")
+    q = load_plane(tmp_path / "plane.json")
+    np.testing.assert_allclose(q.normal, p.normal)
+    assert q.offset == pytest.approx(p.offset)
+    (tmp_path / "bad.json").write_text('{"normal": [0, 0]}')
+    with pytest.raises(PlaneError, match=r"bad\.json: not a plane file"):
+        load_plane(tmp_path / "bad.json")
+
+
+def test_aim_point_and_scale():
+    cams = _ring(target=(0.3, -0.2, 0.1))
+    np.testing.assert_allclose(aim_point(cams), [0.3, -0.2, 0.1], atol=1e-9)
+    assert scene_scale(cams) == pytest.approx(5.0)
+
+
+def test_fit_finds_the_table_under_the_object():
+    rng = np.random.default_rng(0)
+    pts = _scene(rng)
+    cams = _ring()
+    plane, info = fit_support_plane(pts, cams)
+    assert info["found"], info
+    assert np.degrees(np.arccos(plane.normal @ [0, 0, 1])) < 0.5  # up, towards the cameras
+    assert plane.offset == pytest.approx(0.8, abs=0.005)
+    assert info["object_points"] > 100 and info["inliers"] >= 550
+    assert info["camera_elevation_deg"]["min"] == pytest.approx(20.0, abs=1.0)
+
+
+def test_fit_is_frame_independent():
+    """Any similarity of the whole scene (SfM's frame is arbitrary) gives the same plane."""
+    rng = np.random.default_rng(1)
+    pts = _scene(rng)
+    cams = _ring()
+    a = 0.7
+    R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]]) @ \
+        np.array([[np.cos(2.0), -np.sin(2.0), 0], [np.sin(2.0), np.cos(2.0), 0], [0, 0, 1]])
+    sim = Similarity(0.013, R, np.array([5.0, -3.0, 2.0]))
+    plane, info = fit_support_plane(sim.apply(pts), _transform(cams, sim))
+    assert info["found"], info
+    np.testing.assert_allclose(plane.normal, R @ [0, 0, 1], atol=0.01)
+    assert plane.height(sim.apply(np.array([[0.0, 0.0, -0.8]])))[0] == pytest.approx(0.0, abs=0.013 * 0.005)
+
+
+def test_no_plane_in_a_void_capture():
+    """Cameras all around (some below) and an object alone: no support plane."""
+    rng = np.random.default_rng(2)
+    d = rng.normal(size=(800, 3))
+    pts = 0.8 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    cams = _ring(n=24, elevations=(-30.0, 10.0, 50.0))
+    plane, info = fit_support_plane(pts, cams)
+    assert plane is None and not info["found"]
+    assert "one side" in info["reason"] or "holds" in info["reason"]
+
+
+def test_no_plane_without_an_object_on_it():
+    """A table with nothing standing on it near the aim point (a hand-held object elsewhere)."""
+    rng = np.random.default_rng(3)
+    pts = _scene(rng, n_object=0, n_outliers=0)
+    plane, info = fit_support_plane(pts, _ring())
+    assert plane is None and "nothing stands on it" in info["reason"]
+    plane, info = fit_support_plane(pts[:10], _ring())
+    assert plane is None and "only 10 3D points" in info["reason"]
+
+
+def test_settings_are_checked():
+    with pytest.raises(ValueError, match="inlier_distance"):
+        PlaneSettings(inlier_distance=0.0)
+    with pytest.raises(ValueError, match="min_inliers"):
+        PlaneSettings(min_inliers=2)
