@@ -33,6 +33,7 @@ from recon.io.cameras import load_cameras
 from recon.io.images import write_exr
 from recon.io.mesh import Mesh, read_mesh, write_obj
 from recon.optimize import checkpoint as ckpt
+from recon.optimize import objective
 from recon.optimize import regularizers as reg
 from recon.optimize.guard import SurfaceGuard
 from recon.optimize.largesteps import AdamUniform, LargeSteps
@@ -40,7 +41,7 @@ from recon.optimize.material import compare, heldout_error, model_from_settings,
 from recon.optimize.params import TexturePyramid, albedo_param, constant_map, roughness_param
 from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, topology_report, unwrap
 from recon.optimize.settings import OptimizeSettings, StageSettings
-from recon.optimize.views import Views, ViewSet, pixel_footprint, render_loss
+from recon.optimize.views import Views, ViewSet, pixel_footprint
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +77,42 @@ class _Stage:
     pending: object = None  # Future of the check of ``proposed``
     proposed: np.ndarray | None = None  # positions stepped to, not yet checked
     proposed_record: dict | None = None  # log record of the iteration that proposed them
+
+
+@dataclass(frozen=True)
+class _Run:
+    """What a run knows, built once by :func:`optimize_capture`: the settings and the values
+    derived from them, the views and where checkpoints go."""
+
+    settings: OptimizeSettings
+    stages: tuple  # effective StageSettings
+    views: Views  # training views
+    heldout: Views | None
+    bbox_scale: float  # longest side of the initial mesh's bounding box
+    weights: dict  # objective.weights(settings)
+    tone_scale: float
+    light: float
+    ckpt_dir: Path
+    fingerprint: str
+
+    def lr_geometry(self, factor: float = 1.0) -> float:
+        """Adam's geometry rate: ``lr_geometry`` is a fraction of the bounding box per step."""
+        return self.settings.lr_geometry * self.bbox_scale * factor
+
+    def lr_texture(self, factor: float = 1.0) -> float:
+        return self.settings.lr_texture * factor
+
+
+@dataclass
+class _Progress:
+    """What a run accumulates (saved in checkpoints) and reports to."""
+
+    timer: "_Timer"
+    records: list
+    stage_infos: list
+    executor: object = None
+    bar: object = None
+    callback: Callable[[dict], None] | None = None
 
 
 class _Timer:
@@ -129,9 +166,10 @@ def _make_renderer(settings: OptimizeSettings, mesh: Mesh):
     return CollocatedRenderer(mesh.t_pos_idx, mesh.v_tex, mesh.t_tex_idx, rs)
 
 
-def _build_stage(index, stage_settings, h, mesh, v_init, covered, map_values, settings, views, bbox_scale,
+def _build_stage(run: _Run, index, stage_settings, h, mesh, v_init, covered, map_values,
                  opt_state=None, geom_raw=None, map_raw=None) -> _Stage:
     """Set up a stage from its mesh and map values (or, on resume, the saved raw tensors)."""
+    settings, bbox_scale = run.settings, run.bbox_scale
     topo = reg.MeshTopology.from_faces(mesh.t_pos_idx, len(mesh.v_pos))
     ls = None
     if settings.optimizer == "largesteps":
@@ -148,8 +186,8 @@ def _build_stage(index, stage_settings, h, mesh, v_init, covered, map_values, se
         else:
             maps[k] = TexturePyramid(p[k].raw(map_values[k]), settings.texture_levels)
     # start rates; the stage's lr_scale and decay are set before every step (_iteration)
-    lr_g = settings.lr_geometry * bbox_scale
-    lr_t = settings.lr_texture
+    lr_g = run.lr_geometry()
+    lr_t = run.lr_texture()
     # Adam's eps in the units of the gradients, which scale as 1 / bbox_scale: the steps are the
     # same in any scene units (an absolute 1e-8 damps them for a scene in millimetres)
     eps_g = 1e-8 / bbox_scale
@@ -165,7 +203,7 @@ def _build_stage(index, stage_settings, h, mesh, v_init, covered, map_values, se
         SurfaceGuard(mesh.t_pos_idx, topo, v_init, max_halvings=settings.guard_max_halvings)
         if settings.guard else None
     )
-    targets = views.at(settings.stage_image_size(stage_settings))
+    targets = run.views.at(settings.stage_image_size(stage_settings))
     renderer = _make_renderer(settings, mesh)
     return _Stage(index, stage_settings, h, bbox_scale, mesh, v_init, covered, topo, geom, maps, opt_geom, opt_tex, ls,
                   guard, renderer, targets)
@@ -191,32 +229,24 @@ def _stage_state(st: _Stage, next_iteration: int) -> dict:
 
 
 # ---------------------------------------------------------------------- one iteration
-def _forward_backward(st: _Stage, it: int, idx: np.ndarray, settings: OptimizeSettings, weights: dict,
-                      tone_scale: float, light: float, times: dict):
+def _forward_backward(st: _Stage, it: int, idx: np.ndarray, run: _Run, times: dict):
     """Render the views ``idx``, evaluate the loss and backpropagate (gradients in the parameters)."""
+    settings, weights = run.settings, run.weights
     t0 = time.perf_counter()
     v = _positions(st)
     t1 = time.perf_counter()
     vals = _map_values(settings, st.maps)
     cams = [st.targets.cameras[i] for i in idx]
     img = st.renderer.render_torch(v.to(torch.float32), vals["diffuse"], vals["specular"], vals["roughness"],
-                                   cams, light, seed=ckpt.render_seed(settings.seed, st.index, it))
+                                   cams, run.light, seed=ckpt.render_seed(settings.seed, st.index, it))
     t2 = time.perf_counter()
-    terms = {"render": render_loss(img, st.targets.images[idx], st.targets.weights[idx], settings.tone_map, tone_scale)}
-    if weights["laplacian"]:
-        terms["laplacian"] = reg.laplacian_loss(v, st.topo, st.h, settings.laplacian)
-    if weights["edge"]:
-        terms["edge"] = reg.edge_length_loss(v, st.topo, st.h)
-    if weights["normal"]:
-        terms["normal"] = reg.normal_consistency_loss(v, st.topo)
-    valid = torch.from_numpy(st.covered)
-    if weights["specular"]:
-        terms["specular"] = reg.specular_bilateral_loss(
-            vals["specular"], vals["diffuse"], settings.bilateral_sigma_space, settings.bilateral_sigma_color,
-            settings.bilateral_radius, valid)
-    if weights["roughness"]:
-        terms["roughness"] = reg.roughness_tv_loss(vals["roughness"], valid)
-    total = sum(weights[k] * t.to(torch.float64) for k, t in terms.items())
+    terms = {"render": objective.render_loss(img, st.targets.images[idx], st.targets.weights[idx], settings.tone_map,
+                                             run.tone_scale),
+             **objective.geometry_terms(v, st.topo, st.h, settings.laplacian, weights)}
+    terms.update(objective.material_terms(
+        vals["specular"], vals["diffuse"], vals["roughness"], torch.from_numpy(st.covered), weights,
+        settings.bilateral_sigma_space, settings.bilateral_sigma_color, settings.bilateral_radius))
+    total = objective.total(terms, weights)
     t3 = time.perf_counter()
     st.opt_geom.zero_grad(set_to_none=True)
     st.opt_tex.zero_grad(set_to_none=True)
@@ -259,28 +289,28 @@ def _resolve(st: _Stage) -> bool:
     return changed
 
 
-def _iteration(st: _Stage, it: int, settings: OptimizeSettings, weights: dict, tone_scale: float,
-               light: float, timer: _Timer) -> dict:
+def _iteration(st: _Stage, it: int, run: _Run, timer: _Timer) -> dict:
     """One step. The surface check of a step's result runs in a worker thread while the next
     iteration renders with it; the optimizer only steps after the check. When the check finds
     new defects, the positions are backed off and this iteration's forward/backward pass is
     redone, so the accepted trajectory is exactly that of checking synchronously."""
+    settings = run.settings
     n = len(st.targets)
     B = min(int(settings.views_per_iteration), n)
     idx = np.sort(iteration_views(settings.seed, st.index, it, n, B))
     times = {p: 0.0 for p in PHASES}
-    total, terms = _forward_backward(st, it, idx, settings, weights, tone_scale, light, times)
+    total, terms = _forward_backward(st, it, idx, run, times)
     t0 = time.perf_counter()
     redo = _resolve(st)
     times["geometry"] += time.perf_counter() - t0
     if redo:
-        total, terms = _forward_backward(st, it, idx, settings, weights, tone_scale, light, times)
+        total, terms = _forward_backward(st, it, idx, run, times)
     t4 = time.perf_counter()
     f = st.settings.lr_factor(it)
     for g in st.opt_geom.param_groups:
-        g["lr"] = settings.lr_geometry * st.bbox_scale * f
+        g["lr"] = run.lr_geometry(f)
     for g in st.opt_tex.param_groups:
-        g["lr"] = settings.lr_texture * f
+        g["lr"] = run.lr_texture(f)
     st.opt_geom.step()
     st.opt_tex.step()
     p = _params(settings)
@@ -367,7 +397,7 @@ def optimize_capture(
     bbox_scale = float(np.max(hi - lo))
     if not bbox_scale > 0:
         raise OptimizeError(f"{init_mesh_obj}: the initial mesh has an empty bounding box")
-    weights = settings.weights()
+    weights = objective.weights(settings)
     files = [cameras_json, init_mesh_obj, *images, *(masks or []), *(saturation_masks or [])]
     fp = ckpt.fingerprint(settings.to_dict(), [str(f) if f is not None else None for f in files])
     tone_scale = views.median_foreground
@@ -393,13 +423,13 @@ def optimize_capture(
 
         bar = tqdm(total=total_iters, initial=done_iters, desc="optimize", unit="it", dynamic_ncols=True)
 
-    executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surface-guard")
+    run = _Run(settings, tuple(stages), views, heldout, bbox_scale, weights, tone_scale, light, ckpt_dir, fp)
+    prog = _Progress(timer, records, stage_infos, bar=bar, callback=callback,
+                     executor=ThreadPoolExecutor(max_workers=1, thread_name_prefix="surface-guard"))
     try:
-        st = _run_stages(stages, start_stage, start_it, state, init, settings, views, bbox_scale, weights,
-                         tone_scale, light, timer, records, stage_infos, ckpt_dir, fp, executor, bar, callback,
-                         heldout)
+        st = _run_stages(run, prog, init, state, start_stage, start_it)
     finally:
-        executor.shutdown(wait=True)
+        prog.executor.shutdown(wait=True)
     if bar is not None:
         bar.close()
 
@@ -430,7 +460,7 @@ def optimize_capture(
     summary["material_model_label"] = model.label()
     summary["material_selection"] = selection
     summary["holdout"] = holdout_info
-    _save(ckpt_dir, fp, st, int(stages[-1].iterations), records, stage_infos, timer, done=True)
+    _save(run, prog, st, int(stages[-1].iterations), done=True)
     out_dir.mkdir(parents=True, exist_ok=True)
     for k in MAP_NAMES:
         write_exr(out_dir / f"{k}.exr", final_maps[k])
@@ -444,23 +474,24 @@ def optimize_capture(
     return summary
 
 
-def _run_stages(stages, start_stage, start_it, state, init, settings, views, bbox_scale, weights, tone_scale,
-                light, timer, records, stage_infos, ckpt_dir, fp, executor, bar, callback, heldout=None) -> _Stage:
+def _run_stages(run: _Run, prog: _Progress, init: Mesh, state: dict | None, start_stage: int,
+                start_it: int) -> _Stage:
     """The coarse-to-fine loop; returns the last stage (its accepted mesh and maps)."""
+    settings, stages, views, timer = run.settings, run.stages, run.views, prog.timer
+    stage_infos, bar = prog.stage_infos, prog.bar
     st: _Stage | None = None
     prev_mesh, prev_maps = None, None
     lo, hi = init.bbox()
     footprint_full = pixel_footprint(views.cameras, (lo + hi) / 2)
     for si in range(start_stage, len(stages)):
         stage = stages[si]
-        h, h_req, h_min = _stage_edge_length(stage, settings, views, footprint_full, bbox_scale)
+        h, h_req, h_min = _stage_edge_length(stage, settings, views, footprint_full, run.bbox_scale)
         t0 = time.perf_counter()
         if state is not None and si == start_stage:
             m = state["mesh"]
             mesh = Mesh(m["v_pos"], m["t_pos_idx"], m["v_tex"], m["t_tex_idx"])
-            st = _build_stage(si, stage, h, mesh, np.asarray(m["v_init"]), np.asarray(state["covered"]), None,
-                              settings, views, bbox_scale, opt_state=state["optimizer"], geom_raw=state["geom"],
-                              map_raw=state["maps"])
+            st = _build_stage(run, si, stage, h, mesh, np.asarray(m["v_init"]), np.asarray(state["covered"]),
+                              None, opt_state=state["optimizer"], geom_raw=state["geom"], map_raw=state["maps"])
             timer.add("setup", time.perf_counter() - t0)
             it0 = start_it
         else:
@@ -470,18 +501,18 @@ def _run_stages(stages, start_stage, start_it, state, init, settings, views, bbo
                 mesh, maps, covered = remesh_and_rebake(prev_mesh, prev_maps, h, int(stage.texture_size))
             t1 = time.perf_counter()
             timer.add("geometry", t1 - t0)
-            st = _build_stage(si, stage, h, mesh, mesh.v_pos.copy(), covered, maps, settings, views, bbox_scale)
+            st = _build_stage(run, si, stage, h, mesh, mesh.v_pos.copy(), covered, maps)
             timer.add("setup", time.perf_counter() - t1)
             it0 = 0
             log.info("stage %d: %d vertices, %d faces, %dx%d maps, %dx%d images, edge %.4g",
                      si, len(mesh.v_pos), len(mesh.t_pos_idx), stage.texture_size, stage.texture_size,
                      st.targets.cameras[0].width, st.targets.cameras[0].height, h)
             stage_infos.append({**_stage_info(st), "edge_length_requested": h_req, "edge_length_min": h_min})
-            _save(ckpt_dir, fp, st, 0, records, stage_infos, timer, done=False)
-        st.executor = executor
+            _save(run, prog, st, 0, done=False)
+        st.executor = prog.executor
         for it in range(it0, int(stage.iterations)):
-            rec = _iteration(st, it, settings, weights, tone_scale, light, timer)
-            records.append(rec)
+            rec = _iteration(st, it, run, timer)
+            prog.records.append(rec)
             if bar is not None:
                 bar.set_postfix(stage=si, loss=f"{rec['loss']:.4g}", refresh=False)
                 bar.update(1)
@@ -489,15 +520,15 @@ def _run_stages(stages, start_stage, start_it, state, init, settings, views, bbo
                 t0 = time.perf_counter()
                 _resolve(st)  # checkpoints hold checked positions only
                 timer.add("geometry", time.perf_counter() - t0)
-                _save(ckpt_dir, fp, st, it + 1, records, stage_infos, timer, done=False)
-            if callback is not None:
-                callback(rec)
+                _save(run, prog, st, it + 1, done=False)
+            if prog.callback is not None:
+                prog.callback(rec)
         prev_mesh = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
         with torch.no_grad():
             prev_maps = {k: v.numpy().astype(np.float32) for k, v in _map_values(settings, st.maps).items()}
-        if settings.stop_on_plateau and heldout is not None:
+        if settings.stop_on_plateau and run.heldout is not None:
             t0 = time.perf_counter()
-            stop = _plateau(si, prev_mesh, prev_maps, settings, heldout, light, tone_scale, stage_infos)
+            stop = _plateau(run, si, prev_mesh, prev_maps, stage_infos)
             timer.add("material", time.perf_counter() - t0)
             if stop and si + 1 < len(stages):
                 if bar is not None:
@@ -505,18 +536,19 @@ def _run_stages(stages, start_stage, start_it, state, init, settings, views, bbo
                     bar.refresh()
                 log.info("stage %d: held-out error did not improve on stage %d's; skipping the remaining %d "
                          "stage(s) (stop_on_plateau)", si, si - 1, len(stages) - si - 1)
-                _save(ckpt_dir, fp, st, int(stage.iterations), records, stage_infos, timer, done=False)
+                _save(run, prog, st, int(stage.iterations), done=False)
                 break
     return st
 
 
-def _plateau(si, mesh, maps, settings, heldout, light, tone_scale, stage_infos) -> bool:
+def _plateau(run: _Run, si, mesh, maps, stage_infos) -> bool:
     """Held-out error after stage ``si`` (kept in its stage info, so a resumed run decides the
     same); True when it is not lower than the previous stage's by more than its noise."""
+    settings = run.settings
     info = stage_infos[si]
     if "heldout_tiles" not in info:
         s = settings.selection_settings()
-        tiles = heldout_error(mesh, maps, heldout.at(int(settings.select_image_size)), light, tone_scale, s,
+        tiles = heldout_error(mesh, maps, run.heldout.at(int(settings.select_image_size)), run.light, run.tone_scale, s,
                               spp=int(settings.select_spp), seed=int(settings.seed))
         info["heldout_tiles"] = [float(x) for x in tiles]
         info["heldout_error"] = float(np.nanmean(tiles))
@@ -589,13 +621,13 @@ def optimize_from_dirs(
                             out_dir, settings, progress)
 
 
-def _save(ckpt_dir, fp, st: _Stage, next_it: int, records, stage_infos, timer: _Timer, done: bool) -> None:
+def _save(run: _Run, prog: _Progress, st: _Stage, next_it: int, done: bool) -> None:
     t0 = time.perf_counter()
     state = _stage_state(st, next_it)
-    state.update(fingerprint=fp, records=records, stage_infos=stage_infos, timings=dict(timer.total),
-                 done=done)
-    ckpt.save(ckpt_dir, state)
-    timer.add("setup", time.perf_counter() - t0)
+    state.update(fingerprint=run.fingerprint, records=prog.records, stage_infos=prog.stage_infos,
+                 timings=dict(prog.timer.total), done=done)
+    ckpt.save(run.ckpt_dir, state)
+    prog.timer.add("setup", time.perf_counter() - t0)
 
 
 def stage_lambda(settings: OptimizeSettings, stage: StageSettings, edge_length: float) -> float:

@@ -41,9 +41,9 @@ import torch
 
 from recon.io.cameras import Camera
 from recon.io.mesh import Mesh
-from recon.optimize import regularizers as reg
 from recon.optimize.params import TexturePyramid, albedo_param, roughness_param
-from recon.optimize.views import ViewSet, tone_map
+from recon.optimize import objective
+from recon.optimize.views import ViewSet
 
 log = logging.getLogger(__name__)
 
@@ -249,7 +249,7 @@ class _Problem:
         self.n_total = V * H * W
         self.tone, self.scale = tone, scale
         tgt = targets.images.reshape(-1, 3)[torch.from_numpy(self.pixels)]
-        self.target_phi = tone_map(tgt, tone, scale)
+        self.target_phi = objective.tone_map(tgt, tone, scale)
         self.weight = targets.weights.reshape(-1, 1)[torch.from_numpy(self.pixels)]
 
     def render(self, diffuse, specular, roughness, light, r_min) -> torch.Tensor:
@@ -259,7 +259,7 @@ class _Problem:
 
     def pixel_errors(self, rendered: torch.Tensor) -> torch.Tensor:
         """(P,) loss per kept pixel (mean over channels, 0 on clipped pixels)."""
-        return ((tone_map(rendered, self.tone, self.scale) - self.target_phi).abs() * self.weight).mean(-1)
+        return objective.pixel_loss(rendered, self.target_phi, self.weight, self.tone, self.scale)
 
     def loss(self, rendered: torch.Tensor) -> torch.Tensor:
         return self.pixel_errors(rendered).sum() / self.n_total
@@ -367,18 +367,17 @@ def fit_model(model: MaterialModel, gb: GBuffer, targets: ViewSet, init: dict, c
     opt = torch.optim.Adam(P.parameters(), lr=s.lr)
     valid = torch.from_numpy(covered)
     loss = torch.tensor(float("nan"))
+    w = {"render": 1.0, "specular": s.w_specular, "roughness": s.w_roughness}
     n = max(int(s.iterations), 0)
     for it in range(n + 1):
         d, sp, ro = P.values()
         loss = prob.loss(prob.render(d, sp, ro, light, s.r_min))
         if it == n:
             break
-        total = loss
-        if model.specular == "textured" and s.w_specular:
-            total = total + s.w_specular * reg.specular_bilateral_loss(
-                sp, d, s.bilateral_sigma_space, s.bilateral_sigma_color, s.bilateral_radius, valid)
-        if ro is not None and model.roughness == "textured" and s.w_roughness:
-            total = total + s.w_roughness * reg.roughness_tv_loss(ro, valid)
+        terms = {"render": loss, **objective.material_terms(
+            sp if model.specular == "textured" else None, d, ro if model.roughness == "textured" else None, valid,
+            w, s.bilateral_sigma_space, s.bilateral_sigma_color, s.bilateral_radius)}
+        total = objective.total(terms, w, dtype=None)
         for g in opt.param_groups:
             g["lr"] = s.lr * 0.1 ** (it / max(n - 1, 1))
         opt.zero_grad(set_to_none=True)

@@ -10,6 +10,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from recon.config import ConfigError, build_settings
+from recon.optimize import objective
 
 OPTIMIZERS = ("largesteps", "adam")
 BOUNDARIES = ("edge", "none", "projective")
@@ -254,21 +255,14 @@ class OptimizeSettings:
             iterations=int(self.select_iterations), lr=float(self.select_lr), z=float(self.select_z),
             min_gain=float(self.select_min_gain), tone_map=self.tone_map, r_min=float(self.r_min),
             parameterization=self.parameterization, texture_levels=int(self.texture_levels),
-            w_specular=self.w_specular if self.use_material_priors else 0.0,
-            w_roughness=self.w_roughness if self.use_material_priors else 0.0,
+            w_specular=objective.weights(self)["specular"],
+            w_roughness=objective.weights(self)["roughness"],
             bilateral_sigma_space=self.bilateral_sigma_space, bilateral_sigma_color=self.bilateral_sigma_color,
             bilateral_radius=int(self.bilateral_radius))
 
     def weights(self) -> dict[str, float]:
-        """Loss weights after the ablation switches."""
-        return {
-            "render": self.w_render,
-            "laplacian": self.w_laplacian if self.use_laplacian else 0.0,
-            "edge": self.w_edge if self.use_normal_edge else 0.0,
-            "normal": self.w_normal if self.use_normal_edge else 0.0,
-            "specular": self.w_specular if self.use_material_priors else 0.0,
-            "roughness": self.w_roughness if self.use_material_priors else 0.0,
-        }
+        """Loss weights after the ablation switches (:func:`recon.optimize.objective.weights`)."""
+        return objective.weights(self)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)

@@ -182,27 +182,3 @@ def pixel_footprint(cameras, point) -> float:
         if depth > 0:
             vals.append(depth / np.sqrt(K[0, 0] * K[1, 1]))
     return float(np.median(vals)) if vals else 0.0
-
-
-# ---- Tone mapping and the rendering loss ----
-def tone_map(x: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
-    """Phi: "log" = log(1 + x/scale), "srgb" = sRGB encoding of min(x, 1), "linear" = x."""
-    if kind == "log":
-        return torch.log1p(x.clamp(min=0.0) / scale)
-    if kind == "srgb":
-        c = x.clamp(0.0, 1.0)
-        return torch.where(c <= 0.0031308, 12.92 * c, 1.055 * c.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
-    if kind == "linear":
-        return x
-    raise ValueError(f"tone map must be 'log', 'srgb' or 'linear', got {kind!r}")
-
-
-def render_loss(render: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
-    """Eq. 6 per pixel: ``mean(w |Phi(render) - Phi(target)|)`` over views, pixels and channels.
-
-    render, target : (B, h, w, 3); weights : (B, h, w, 1) (0 = clipped pixel).
-    """
-    if render.shape != target.shape:
-        raise ValueError(f"render {tuple(render.shape)} and target {tuple(target.shape)} differ")
-    d = (tone_map(render, kind, scale) - tone_map(target, kind, scale)).abs() * weights
-    return d.mean()

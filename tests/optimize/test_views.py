@@ -4,7 +4,8 @@ import torch
 
 from recon.io.cameras import Camera, CameraSet, intrinsics, look_at, save_cameras
 from recon.io.images import write_exr, write_mask
-from recon.optimize.views import Views, ViewsError, render_loss, tone_map
+from recon.optimize.objective import render_loss, tone_map
+from recon.optimize.views import Views, ViewsError
 
 
 def make(tmp_path, n=2, W=8, H=6, sat=True):

@@ -1,0 +1,100 @@
+"""The objective, in one place: the image term of the paper's equation 6 and the priors.
+
+Both the main loop (:mod:`recon.optimize.loop`) and the material fits
+(:mod:`recon.optimize.material`) evaluate their loss through this module, so a new term (an
+imaging-model parameter's prior, a camera prior, a mask-restricted image term) is one edit here:
+its name in :data:`TERMS`, its weight in :func:`weights`, its value in :func:`geometry_terms` or
+:func:`material_terms`.
+
+    L = w_render * mean(w_pix |Phi(I(theta)) - Phi(I_target)|)          image term (eq. 6)
+      + w_laplacian * L_lap(V) + w_edge * L_edge(V) + w_normal * L_n(V)  mesh priors
+      + w_specular * L_bilateral(a_s; a_d) + w_roughness * TV(r)         material priors
+
+``Phi`` is the tone map applied to both sides; ``w_pix`` is 0 on clipped pixels.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from recon.optimize import regularizers as reg
+
+TERMS = ("render", "laplacian", "edge", "normal", "specular", "roughness")
+
+
+# ---- Image term ----
+def tone_map(x: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
+    """Phi: "log" = log(1 + x/scale), "srgb" = sRGB encoding of min(x, 1), "linear" = x."""
+    if kind == "log":
+        return torch.log1p(x.clamp(min=0.0) / scale)
+    if kind == "srgb":
+        c = x.clamp(0.0, 1.0)
+        return torch.where(c <= 0.0031308, 12.92 * c, 1.055 * c.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
+    if kind == "linear":
+        return x
+    raise ValueError(f"tone map must be 'log', 'srgb' or 'linear', got {kind!r}")
+
+
+def pixel_loss(render: torch.Tensor, target_phi: torch.Tensor, weights: torch.Tensor, kind: str,
+               scale: float) -> torch.Tensor:
+    """Per pixel ``w |Phi(render) - Phi(target)|`` averaged over channels; ``target_phi`` is the
+    target already tone mapped (it never changes during a fit). Shapes (..., 3), (..., 1)."""
+    return ((tone_map(render, kind, scale) - target_phi).abs() * weights).mean(-1)
+
+
+def render_loss(render: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
+    """Eq. 6 per pixel: ``mean(w |Phi(render) - Phi(target)|)`` over views, pixels and channels.
+
+    render, target : (B, h, w, 3); weights : (B, h, w, 1) (0 = clipped pixel).
+    """
+    if render.shape != target.shape:
+        raise ValueError(f"render {tuple(render.shape)} and target {tuple(target.shape)} differ")
+    d = (tone_map(render, kind, scale) - tone_map(target, kind, scale)).abs() * weights
+    return d.mean()
+
+
+# ---- Weights: the one place where the ablation switches act ----
+def weights(settings) -> dict[str, float]:
+    """Each term's weight after the ablation switches (``use_laplacian``, ``use_normal_edge``,
+    ``use_material_priors``) of :class:`recon.optimize.settings.OptimizeSettings`."""
+    return {
+        "render": settings.w_render,
+        "laplacian": settings.w_laplacian if settings.use_laplacian else 0.0,
+        "edge": settings.w_edge if settings.use_normal_edge else 0.0,
+        "normal": settings.w_normal if settings.use_normal_edge else 0.0,
+        "specular": settings.w_specular if settings.use_material_priors else 0.0,
+        "roughness": settings.w_roughness if settings.use_material_priors else 0.0,
+    }
+
+
+# ---- Priors ----
+def geometry_terms(v: torch.Tensor, topo, h: float, laplacian: str, w: dict) -> dict[str, torch.Tensor]:
+    """The mesh priors with a nonzero weight in ``w`` (vertex positions ``v``)."""
+    terms = {}
+    if w.get("laplacian"):
+        terms["laplacian"] = reg.laplacian_loss(v, topo, h, laplacian)
+    if w.get("edge"):
+        terms["edge"] = reg.edge_length_loss(v, topo, h)
+    if w.get("normal"):
+        terms["normal"] = reg.normal_consistency_loss(v, topo)
+    return terms
+
+
+def material_terms(specular, diffuse, roughness, valid, w: dict, sigma_space: float, sigma_color: float,
+                   radius: int) -> dict[str, torch.Tensor]:
+    """The material priors with a nonzero weight in ``w``; pass ``specular``/``roughness`` as
+    None where the map is not textured (a uniform or absent map has no spatial prior)."""
+    terms = {}
+    if w.get("specular") and specular is not None:
+        terms["specular"] = reg.specular_bilateral_loss(specular, diffuse, sigma_space, sigma_color, radius, valid)
+    if w.get("roughness") and roughness is not None:
+        terms["roughness"] = reg.roughness_tv_loss(roughness, valid)
+    return terms
+
+
+def total(terms: dict[str, torch.Tensor], w: dict[str, float], dtype: torch.dtype | None = torch.float64) -> torch.Tensor:
+    """The weighted sum of ``terms`` (each cast to ``dtype`` first unless it is None)."""
+    unknown = set(terms) - set(w)
+    if unknown:
+        raise KeyError(f"objective terms without a weight: {sorted(unknown)}")
+    return sum(w[k] * (t if dtype is None else t.to(dtype)) for k, t in terms.items())
