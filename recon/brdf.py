@@ -27,7 +27,7 @@ The model exists four times, each for its own machinery, each tied to this refer
 - ``recon/render/collocated.py`` ``CollocatedRenderer._shade``, drjit, the differentiable renderer
   (``tests/render/test_collocated.py::test_forward_known_values_fronto_parallel_quad`` and the
   comparison with Mitsuba's render through the plugin below);
-- ``recon/optimize/material.py`` ``_radiance``, torch, the G-buffer shading of the material fits
+- ``recon/optimize/gbuffer.py`` ``radiance``, torch, the G-buffer shading of the material fits
   (``tests/optimize/test_material.py::test_shading_matches_reference_brdf``);
 - ``recon/render/mitsuba_bsdf.py``, a Mitsuba BSDF plugin: synthetic captures, reference renders
   and relighting (``tests/render/test_mitsuba_bsdf.py::test_eval_matches_reference``, a chi-square

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from recon.io.cameras import Camera
+from recon.render.torch_bridge import camera_table_torch
 
 POSE_DIM = 6  # w (3) + d (3) per view
 
@@ -149,8 +150,6 @@ class CameraRefinement(torch.nn.Module):
 
     def table(self, idx: Sequence[int], cameras: Sequence[Camera]) -> torch.Tensor:
         """(B, 24) float32 camera table of views ``idx`` for the renderer, differentiable."""
-        from recon.render.torch_bridge import camera_table_torch
-
         K, w2c = self.matrices(idx, cameras)
         return camera_table_torch(K, w2c).to(torch.float32)
 

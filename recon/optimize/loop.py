@@ -35,13 +35,14 @@ from recon.io.mesh import Mesh, read_mesh, write_obj
 from recon.optimize import checkpoint as ckpt
 from recon.optimize import objective
 from recon.optimize import regularizers as reg
-from recon.optimize.guard import SurfaceGuard
+from recon.optimize.guard import SurfaceGuard, self_intersecting_faces
 from recon.optimize.largesteps import AdamUniform, LargeSteps
 from recon.optimize.material import compare, heldout_error, model_from_settings, select_material
 from recon.optimize.params import TexturePyramid, albedo_param, constant_map, roughness_param
 from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, topology_report, unwrap
 from recon.optimize.settings import OptimizeSettings, StageSettings
 from recon.optimize.views import Views, ViewSet, pixel_footprint
+from recon.render import CollocatedRenderer, RenderSettings
 
 log = logging.getLogger(__name__)
 
@@ -159,8 +160,6 @@ def _initial_stage_mesh(init: Mesh, settings: OptimizeSettings, stage: StageSett
 
 
 def _make_renderer(settings: OptimizeSettings, mesh: Mesh):
-    from recon.render import CollocatedRenderer, RenderSettings
-
     rs = RenderSettings(spp=int(settings.spp), boundary=settings.boundary, variant=settings.variant,
                         r_min=settings.r_min)
     return CollocatedRenderer(mesh.t_pos_idx, mesh.v_tex, mesh.t_tex_idx, rs)
@@ -451,8 +450,6 @@ def optimize_capture(
         timer.add("material", time.perf_counter() - t0)
         log.info("material model: %s", model.label())
     topo = topology_report(final.v_pos, final.t_pos_idx)
-    from recon.optimize.guard import self_intersecting_faces
-
     n_si = int(self_intersecting_faces(final.v_pos, final.t_pos_idx).sum())
     wall = time.perf_counter() - t_start
     summary = _summary(settings, stage_infos, records, timer, final, topo, n_si, wall, bbox_scale)

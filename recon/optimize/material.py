@@ -39,10 +39,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from recon.io.cameras import Camera
 from recon.io.mesh import Mesh
 from recon.optimize.params import TexturePyramid, albedo_param, roughness_param
+from recon.optimize.remesh import rasterize_atlas
 from recon.optimize import objective
+from recon.optimize.gbuffer import GBuffer, build_gbuffer, radiance
 from recon.optimize.views import ViewSet
 
 log = logging.getLogger(__name__)
@@ -106,131 +107,7 @@ def _steps(m: MaterialModel):
         yield "spatially varying roughness", r(m, roughness="textured")
 
 
-# ---------------------------------------------------------------------- G-buffer
-@dataclass
-class GBuffer:
-    """Surface samples of a set of views of a fixed mesh.
-
-    pixel : (N,) int64 index into the flattened (views, h, w) images
-    uv : (N, 2) float32 texture coordinates (OBJ convention, v up)
-    mu : (N,) float32 ``max(0, n . w)``, shading normal against the direction to the camera
-    inv_d2 : (N,) float32 ``1 / |y - o|^2``
-    spp : samples per pixel (misses contribute zero)
-    shape : (views, h, w)
-    """
-
-    pixel: torch.Tensor
-    uv: torch.Tensor
-    mu: torch.Tensor
-    inv_d2: torch.Tensor
-    spp: int
-    shape: tuple
-
-    @property
-    def grid(self) -> torch.Tensor:
-        """(1, 1, N, 2) ``grid_sample`` coordinates of the samples (DESIGN texel convention)."""
-        return torch.stack([2 * self.uv[:, 0] - 1, 1 - 2 * self.uv[:, 1]], -1)[None, None]
-
-
-def build_gbuffer(mesh: Mesh, cameras: list[Camera] | tuple[Camera, ...], spp: int = 4, seed: int = 0) -> GBuffer:
-    """Trace ``spp`` stratified samples per pixel of every camera against ``mesh`` (open3d).
-
-    Shading normals are the area-weighted vertex normals interpolated barycentrically
-    (DESIGN section 3), UVs interpolated barycentrically.
-    """
-    import open3d as o3d
-
-    if mesh.v_tex is None:
-        raise ValueError("build_gbuffer needs a mesh with UVs")
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(mesh.v_pos.astype(np.float32)),
-                        o3d.core.Tensor(mesh.t_pos_idx.astype(np.uint32)))
-    vn = mesh.vertex_normals()
-    k = max(int(round(np.sqrt(spp))), 1)
-    spp = k * k
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x6B0F]))
-    W, H = cameras[0].width, cameras[0].height
-    jj, ii = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
-    pix_all, uv_all, mu_all, d2_all = [], [], [], []
-    for view, cam in enumerate(cameras):
-        if (cam.width, cam.height) != (W, H):
-            raise ValueError("build_gbuffer: all cameras must have the same image size")
-        R = cam.world_to_camera[:3, :3]
-        o = cam.center
-        Kinv = np.linalg.inv(cam.K)
-        for s in range(spp):
-            sx, sy = s % k, s // k
-            jx = (sx + rng.random(jj.shape)) / k
-            jy = (sy + rng.random(jj.shape)) / k
-            pix = np.stack([(jj + jx).ravel(), (ii + jy).ravel(), np.ones(jj.size)], 1)
-            d = (pix @ Kinv.T) @ R  # camera -> world directions (rows)
-            d /= np.linalg.norm(d, axis=1, keepdims=True)
-            rays = np.concatenate([np.broadcast_to(o, d.shape), d], 1).astype(np.float32)
-            hit = scene.cast_rays(o3d.core.Tensor(rays))
-            t = hit["t_hit"].numpy()
-            ok = np.isfinite(t)
-            if not ok.any():
-                continue
-            prim = hit["primitive_ids"].numpy()[ok].astype(np.int64)
-            bu, bv = hit["primitive_uvs"].numpy()[ok].T.astype(np.float64)
-            b = np.stack([1 - bu - bv, bu, bv], 1)
-            f = mesh.t_pos_idx[prim]
-            n = np.einsum("nk,nkd->nd", b, vn[f])
-            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
-            uv = np.einsum("nk,nkd->nd", b, mesh.v_tex[mesh.t_tex_idx[prim]])
-            mu = np.maximum(-(n * d[ok]).sum(1), 0.0)
-            tt = t[ok].astype(np.float64)
-            pix_all.append(view * H * W + np.flatnonzero(ok))
-            uv_all.append(uv.astype(np.float32))
-            mu_all.append(mu.astype(np.float32))
-            d2_all.append((1.0 / np.maximum(tt * tt, 1e-30)).astype(np.float32))
-    def cat(xs, dt, shp):
-        if xs:
-            return torch.from_numpy(np.concatenate(xs).astype(dt))
-        return torch.zeros(shp, dtype=torch.float32 if dt != np.int64 else torch.int64)
-
-    return GBuffer(cat(pix_all, np.int64, (0,)), cat(uv_all, np.float32, (0, 2)), cat(mu_all, np.float32, (0,)),
-                   cat(d2_all, np.float32, (0,)), spp, (len(cameras), H, W))
-
-
-def _lookup(tex: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-    """Bilinear lookup, clamped to the edge texels: (T, T, C) map at (1, 1, N, 2) -> (N, C)."""
-    if tex.shape[0] == 1 and tex.shape[1] == 1:  # uniform
-        return tex.reshape(1, -1).expand(grid.shape[2], -1)
-    out = torch.nn.functional.grid_sample(tex.permute(2, 0, 1)[None], grid, mode="bilinear",
-                                          padding_mode="border", align_corners=False)
-    return out[0, :, 0].T
-
-
-def _radiance(gb: GBuffer, grid: torch.Tensor, diffuse, specular, roughness, light: float, r_min: float):
-    """(N, 3) radiance of the samples (DESIGN section 3, collocated), see :func:`shade`."""
-    f = _lookup(diffuse, grid) * (1.0 / np.pi)
-    if specular is not None:
-        alpha = _lookup(roughness, grid).clamp(min=r_min, max=1.0) ** 2
-        mu = gb.mu[:, None]
-        a2 = alpha * alpha
-        mu2 = mu * mu
-        # mu^2 (a2 - 1) + 1 written as (1 - mu)(1 + mu) + mu^2 a2: no cancellation near mu = 1
-        # at r_min (float32: 1 - 1 + 1.6e-7 would lose the peak of D by ~20 %)
-        dd = (1 - mu) * (1 + mu) + mu2 * a2
-        g = mu + torch.sqrt(a2 + (1 - a2) * mu2)  # 2 mu / G1(mu)
-        f = f + _lookup(specular, grid) * (a2 / (np.pi * (dd * g) ** 2))
-    return f * (light * gb.mu * gb.inv_d2)[:, None]
-
-
-def shade(gb: GBuffer, diffuse: torch.Tensor, specular: torch.Tensor | None, roughness: torch.Tensor,
-          light: float, r_min: float) -> torch.Tensor:
-    """Images ``(views, h, w, 3)`` of the G-buffer's views (DESIGN section 3, collocated).
-
-    ``diffuse`` (T, T, 3); ``specular`` (T, T, 1|3) or None (no specular lobe); ``roughness``
-    (T, T, 1). A (1, 1, C) map is uniform. Each pixel is the mean of its ``spp`` samples.
-    """
-    rad = _radiance(gb, gb.grid, diffuse, specular, roughness, light, r_min)
-    V, H, W = gb.shape
-    img = torch.zeros((V * H * W, 3), dtype=rad.dtype).index_add(0, gb.pixel, rad) / gb.spp
-    return img.reshape(V, H, W, 3)
-
-
+# ---------------------------------------------------------------------- the fit's problem
 class _Problem:
     """A G-buffer and its targets restricted to the pixels that can carry loss (object in the
     photo or surface in the render); the loss is still the mean over every pixel of every view."""
@@ -253,7 +130,7 @@ class _Problem:
         self.weight = targets.weights.reshape(-1, 1)[torch.from_numpy(self.pixels)]
 
     def render(self, diffuse, specular, roughness, light, r_min) -> torch.Tensor:
-        rad = _radiance(self.gb, self.grid, diffuse, specular, roughness, light, r_min)
+        rad = radiance(self.gb, self.grid, diffuse, specular, roughness, light, r_min)
         out = torch.zeros((len(self.pixels), 3), dtype=rad.dtype).index_add(0, self.sample_pixel, rad)
         return out / self.gb.spp
 
@@ -561,8 +438,6 @@ def select_on_known_mesh(mesh: Mesh, train: ViewSet, heldout: ViewSet, light: fl
     """The selection on a given mesh without the main loop (benchmarks and tests of the selection):
     constant maps (diffuse 0.3, specular 0.1, roughness 0.4), the full model fitted from them for
     ``full_iterations`` steps as the main loop would leave it, then :func:`select_material`."""
-    from recon.optimize.remesh import rasterize_atlas
-
     T = int(texture_size)
     covered = rasterize_atlas(mesh, T)[0] >= 0
     const = {"diffuse": np.full((T, T, 3), 0.3, np.float32), "specular": np.full((T, T, 1), 0.1, np.float32),

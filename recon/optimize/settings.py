@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 from recon.config import ConfigError, build_settings
 from recon.optimize import objective
+from recon.optimize.material import SelectionSettings
 
 OPTIMIZERS = ("largesteps", "adam")
 BOUNDARIES = ("edge", "none", "projective")
@@ -249,8 +250,6 @@ class OptimizeSettings:
         return bool(self.select_material or self.stop_on_plateau)
 
     def selection_settings(self):
-        from recon.optimize.material import SelectionSettings
-
         return SelectionSettings(
             iterations=int(self.select_iterations), lr=float(self.select_lr), z=float(self.select_z),
             min_gain=float(self.select_min_gain), tone_map=self.tone_map, r_min=float(self.r_min),

@@ -12,15 +12,14 @@ from recon.brdf import radiance_collocated
 from recon.io.cameras import load_cameras
 from recon.io.images import read_exr
 from recon.io.mesh import read_obj
+from recon.optimize.gbuffer import GBuffer, shade
 from recon.optimize.material import (
     DIFFUSE_ONLY,
-    GBuffer,
     MaterialModel,
     SelectionSettings,
     compare,
     select_on_known_mesh,
     selection_steps,
-    shade,
 )
 from recon.optimize.remesh import rasterize_atlas
 from recon.optimize.settings import OptimizeSettings
