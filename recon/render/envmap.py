@@ -36,6 +36,9 @@ import numpy as np
 from recon.brdf import R_MIN
 from recon.io.cameras import Camera, mitsuba_sensor_dict
 from recon.io.mesh import Mesh
+from recon.render.mitsuba_bsdf import load_variant_current
+from recon.render import mitsuba_bsdf
+from recon.metrics import image_rmse
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +143,6 @@ def _check_envmap(envmap) -> np.ndarray:
 
 def envmap_emitter_dict(envmap: np.ndarray, scale: float = 1.0) -> dict:
     """A Mitsuba ``envmap`` emitter dict for an (H, W, 3) map in this module's convention."""
-    from recon.render.mitsuba_bsdf import load_variant_current
 
     mi = load_variant_current()
     a = _check_envmap(envmap)
@@ -189,7 +191,6 @@ def render_envmap_views(mesh: Mesh, maps: Mapping[str, object], cameras: Sequenc
     -------
     list of (h, w, 4) float32: linear RGB radiance, then the pixel coverage in [0, 1].
     """
-    from recon.render import mitsuba_bsdf
 
     if int(spp) < 1:
         raise EnvmapError(f"spp must be >= 1, got {spp}")
@@ -252,7 +253,6 @@ def relight_rmse(rec_mesh: Mesh, rec_maps: Mapping[str, object], gt_mesh: Mesh,
     -------
     dict with ``per_view`` (list of float), ``mean`` (float) and ``spp``.
     """
-    from recon.metrics import image_rmse
 
     if len(cameras) == 0:
         raise EnvmapError("relight_rmse: no cameras given")

@@ -36,6 +36,7 @@ from recon.brdf import R_MIN
 from recon.io.cameras import Camera, mitsuba_sensor_dict
 from recon.io.mesh import Mesh
 from recon.mi import load_variant
+from recon import mi as recon_mi
 
 log = logging.getLogger(__name__)
 
@@ -256,7 +257,6 @@ def texture_dict(value, name: str) -> dict | float:
 
 def load_variant_current():
     """The mitsuba module with the variant already chosen (or the default one)."""
-    from recon import mi as recon_mi
 
     return load_variant(recon_mi.variant())
 

@@ -23,6 +23,8 @@ import numpy as np
 
 from recon.io.cameras import Camera, mitsuba_sensor_dict
 from recon.render.mitsuba_bsdf import clip_range
+from recon.render import mitsuba_bsdf
+from recon.render.mitsuba_bsdf import bsdf_dict
 
 __all__ = ["MitsubaScene", "render_projective"]
 
@@ -41,7 +43,6 @@ class MitsubaScene:
     """
 
     def __init__(self, renderer, integrator: str = "direct_projective"):
-        from recon.render import mitsuba_bsdf
 
         if integrator not in INTEGRATORS:
             raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
@@ -73,7 +74,6 @@ class MitsubaScene:
 
     def _build_scene(self, textures: dict):
         """One scene (mesh, BSDF, point light) and its parameters; textures get their shapes."""
-        from recon.render.mitsuba_bsdf import bsdf_dict
 
         mi = self.mi
         bsdf = mi.load_dict(bsdf_dict({k: np.zeros(s, np.float32) + 0.5

@@ -32,6 +32,7 @@ import numpy as np
 from recon.io.cameras import Camera, CameraSet, load_cameras
 from recon.io.mesh import Mesh
 from recon.report.inputs import Model, ReportError, read_map, read_surface_mesh
+from recon.metrics import MetricsError, Similarity, align_cameras
 
 log = logging.getLogger(__name__)
 
@@ -181,7 +182,6 @@ def texture_errors(reconstruction: Model, ground_truth: Model, similarity, unit:
 # ---- Alignment ----
 def alignment(estimated: CameraSet, true: CameraSet):
     """(similarity estimated -> true frame, how it was found)."""
-    from recon.metrics import MetricsError, Similarity, align_cameras
 
     try:
         return align_cameras(estimated, true), "umeyama on camera centers"

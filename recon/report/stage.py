@@ -71,6 +71,7 @@ from recon.report.views import (
     write_view_images,
 )
 from recon.report.viewer import find_bundle, install_viewer, viewer_head, viewer_html
+from recon.report.views import resize_area
 
 log = logging.getLogger(__name__)
 
@@ -151,7 +152,6 @@ def _positive(x) -> bool:
 
 
 def _downsample(texture: np.ndarray, size: int) -> np.ndarray:
-    from recon.report.views import resize_area
 
     h, w = texture.shape[:2]
     f = min(1.0, size / max(h, w))

@@ -25,6 +25,9 @@ from recon.io.cameras import Camera
 from recon.io.images import ImageError, linear_to_srgb, read_exr, read_mask
 from recon.io.mesh import Mesh
 from recon.report.inputs import ReportError
+from recon.metrics import MetricsError, image_rmse
+from recon.render.mitsuba_bsdf import render_reference
+from recon.io.images import write_jpg
 
 log = logging.getLogger(__name__)
 
@@ -196,7 +199,6 @@ def compare(stem: str, camera: Camera, target_linear: np.ndarray, target_mask: n
             render_linear: np.ndarray, render_mask: np.ndarray,
             saturated: np.ndarray | None = None) -> ViewResult:
     """RMSE and error map of ``render_linear`` against ``target_linear`` (same (h, w, 3))."""
-    from recon.metrics import MetricsError, image_rmse
 
     keep = ~saturated if saturated is not None else np.ones(target_mask.shape, bool)
     union = (target_mask | render_mask) & keep
@@ -211,7 +213,6 @@ def compare(stem: str, camera: Camera, target_linear: np.ndarray, target_mask: n
 def render_view(mesh: Mesh, textures: dict, camera: Camera, light_intensity: float, spp: int,
                 seed: int, variant: str | None, r_min: float) -> tuple[np.ndarray, np.ndarray]:
     """Re-render ``mesh`` from ``camera``: (h, w, 3) linear image and (h, w) coverage mask."""
-    from recon.render.mitsuba_bsdf import render_reference
 
     img = render_reference(mesh, textures, camera, light_intensity=light_intensity, spp=spp,
                            seed=seed, variant=variant, r_min=r_min)
@@ -235,7 +236,6 @@ def compare_view(view: ViewInputs, camera: Camera, mesh: Mesh, textures: dict,
 def write_view_images(result: ViewResult, folder: str | os.PathLike, vmax: float) -> dict[str, str]:
     """Write ``<stem>.input.jpg``, ``<stem>.render.jpg``, ``<stem>.error.jpg`` (sRGB);
     returns their file names by role."""
-    from recon.io.images import write_jpg
 
     folder = Path(folder)
     names = {k: f"{result.stem}.{k}.jpg" for k in ("input", "render", "error")}

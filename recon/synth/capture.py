@@ -52,6 +52,9 @@ from recon.synth.bake import bake, unwrap
 from recon.synth.materials import MaterialFields
 from recon.support import save_plane
 from recon.synth.shapes import OBJECT_KINDS, flatten_base, make_object
+from recon.render.mitsuba_bsdf import render_reference
+from recon.synth.sensor import SensorModel, exposure_value
+from recon.synth.tabletop import TabletopScene, add_marker_mat, table_texture, tabletop_cameras
 
 log = logging.getLogger(__name__)
 
@@ -337,8 +340,6 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
     ``command`` (the command line that regenerates it) is recorded in gt/README.md and
     gt/synth.json.
     """
-    from recon.render.mitsuba_bsdf import render_reference
-    from recon.synth.sensor import SensorModel, exposure_value
 
     out_dir = Path(out_dir)
     s = settings
@@ -358,7 +359,6 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
     textures = {"diffuse": diffuse, "specular": specular, "roughness": roughness}
     scene, marker = None, None
     if tabletop:
-        from recon.synth.tabletop import TabletopScene, add_marker_mat, table_texture, tabletop_cameras
 
         log.info("synth: table texture %d^2", s.table_texture_size)
         table_rgb = table_texture(s.table_texture_size, s.table_half_size, s.seed)

@@ -32,6 +32,8 @@ from recon.io.cameras import Camera, CameraSet, intrinsics, look_at
 from recon.io.mesh import Mesh
 from recon.support import SupportPlane
 from recon.synth.noise import dots, fbm
+from recon.render.mitsuba_bsdf import bsdf_dict, clip_range, mitsuba_mesh, register, scene_dict
+from recon.render.mitsuba_bsdf import render_reference
 
 TABLE_SPECULAR = 0.04
 TABLE_ROUGHNESS = 0.45
@@ -171,7 +173,6 @@ class TabletopScene:
 
     def render(self, cam: Camera, light_intensity: float, spp: int, seed: int) -> np.ndarray:
         """(H, W, 3) float32 linear radiance of the whole scene for ``cam``."""
-        from recon.render.mitsuba_bsdf import bsdf_dict, clip_range, mitsuba_mesh, register, scene_dict
 
         mi = register()
         d = scene_dict(self.mesh, self.textures, cam, light_intensity, spp)
@@ -192,7 +193,6 @@ class TabletopScene:
 
     def object_coverage(self, cam: Camera, spp: int, seed: int) -> np.ndarray:
         """(H, W) float32 fraction of each pixel's footprint on the object alone."""
-        from recon.render.mitsuba_bsdf import render_reference
 
         rgba = render_reference(self.mesh, self.textures, cam, 1.0, spp, seed=seed, alpha=True)
         return rgba[:, :, 3]
