@@ -180,6 +180,24 @@ def build_settings(cls: type[T], values: dict | None, source: str = "settings") 
         raise ConfigError(f"{where}: invalid {cls.__name__} ({e})") from e
 
 
+def check_results_location(results: str | os.PathLike, captures_root: str | os.PathLike) -> None:
+    """Refuse a results folder that is, contains, or lies inside the captures folder.
+
+    Stages replace their result folders whole; a results folder that overlaps the captures
+    would let them overwrite or delete a user's own files (a capture's ``masks/``, say). Checked
+    before anything runs; the message names both paths.
+    """
+    res = Path(results).resolve()
+    root = Path(captures_root).resolve()
+    if res == root or root in res.parents or res in root.parents:
+        how = ("is" if res == root else "lies inside" if root in res.parents else "contains")
+        raise ConfigError(
+            f"results folder '{res}' {how} the captures folder '{root}': stages replace their "
+            "result folders and would overwrite or delete your own files there; pass "
+            "--config results=DIR with a folder outside the captures"
+        )
+
+
 def discover_captures(captures_root: str | os.PathLike) -> list[str]:
     """Names of the capture folders under ``captures_root`` (those with an ``images/`` folder)."""
     root = Path(captures_root)

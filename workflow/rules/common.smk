@@ -9,6 +9,7 @@ CAPTURES_ROOT = config["captures"]
 PRESET = config["preset"]
 PRESETS_DIR = str(Path(workflow.basedir) / "config" / "presets")
 CAPTURES = rc.discover_captures(CAPTURES_ROOT)
+rc.check_results_location(RESULTS, CAPTURES_ROOT)
 
 
 wildcard_constraints:
