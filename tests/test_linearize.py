@@ -580,3 +580,38 @@ def test_linearize_rule(tmp_path, repo_root):
         assert (target.parent / f"{stem}.exr").is_file() and (target.parent / "preview" / f"{stem}.jpg").is_file()
     assert "0001.dng" in (results / "c1" / "logs" / "linearize.log").read_text()
     assert (results / "c1" / "benchmarks" / "linearize.tsv").is_file()
+
+
+def test_heic_photos_read_like_jpeg_with_their_exif(tmp_path):
+    """iPhones write HEIC by default: a HEIC capture (made here with pillow-heif, EXIF exposure and
+    focal length included) linearizes like the same pixels as PNG, and its EXIF is read."""
+    from PIL import Image
+
+    from recon.io.images import register_heif
+
+    register_heif()
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:48, 0:64]
+    base = (60 + 120 * np.exp(-((x - 32) ** 2 + (y - 24) ** 2) / 300.0))[..., None] * np.array([1.0, 0.9, 0.8])
+    for fmt in ("heic", "png"):
+        images = tmp_path / fmt / "images"
+        images.mkdir(parents=True)
+        for k in range(2):
+            rgb = np.clip(base + rng.normal(0, 2, base.shape), 0, 255).astype(np.uint8) if fmt == "heic" else None
+            if fmt == "png":
+                with Image.open(tmp_path / "heic" / "images" / f"{k:04d}.heic") as im:
+                    rgb = np.asarray(im.convert("RGB"))  # the decoded HEIC pixels, stored losslessly
+            exif = Image.Exif()
+            exif[0x010F] = "Apple"
+            exif.get_ifd(0x8769).update({0x829A: 1 / 60, 0x829D: 1.8, 0x8827: 100, 0x920A: 4.2, 0xA405: 26})
+            Image.fromarray(rgb).save(images / f"{k:04d}.{fmt}", exif=exif.tobytes(),
+                                      **({"quality": 95} if fmt == "heic" else {}))
+    recs = {fmt: linearize_capture(tmp_path / fmt, tmp_path / f"lin_{fmt}", LinearizeSettings(preview_max_size=64))
+            for fmt in ("heic", "png")}
+    e = recs["heic"]["images"]["0000"]
+    assert (e["exposure_time"], e["f_number"], e["iso"]) == pytest.approx((1 / 60, 1.8, 100.0))
+    # 35 mm equivalent over the diagonal (43.27 mm) of the 64 x 48 image
+    assert e["focal_length_px"] == pytest.approx(26 * np.hypot(64, 48) / np.hypot(36, 24), rel=0.01)
+    for k in ("0000", "0001"):
+        np.testing.assert_allclose(read_exr(tmp_path / "lin_heic" / f"{k}.exr"),
+                                   read_exr(tmp_path / "lin_png" / f"{k}.exr"), rtol=1e-5, atol=1e-6)

@@ -18,7 +18,8 @@ from recon.io.atomic import atomic_path
 log = logging.getLogger(__name__)
 
 RAW_EXTENSIONS = (".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".rw2", ".orf", ".pef", ".srw")
-LDR_EXTENSIONS = (".jpg", ".jpeg", ".png")
+HEIF_EXTENSIONS = (".heic", ".heif")  # iPhones' default; decoded by pillow-heif
+LDR_EXTENSIONS = (".jpg", ".jpeg", ".png") + HEIF_EXTENSIONS
 HDR_EXTENSIONS = (".exr",)
 IMAGE_EXTENSIONS = RAW_EXTENSIONS + LDR_EXTENSIONS + HDR_EXTENSIONS
 
@@ -123,14 +124,36 @@ def read_texture_map(path: str | os.PathLike, what: str, channels: tuple[int, ..
 
 
 # ---- 8/16-bit PNG and JPEG ----
+def register_heif() -> None:
+    """Let PIL open HEIC/HEIF files (pillow-heif); idempotent."""
+    import pillow_heif
+
+    pillow_heif.register_heif_opener()
+
+
+def _read_heif(path: Path) -> tuple[np.ndarray, int]:
+    """A HEIC/HEIF photo (8-bit sRGB as phones write it) as float32 ``(H, W, 3)`` in [0, 1]."""
+    from PIL import Image, UnidentifiedImageError
+
+    register_heif()
+    try:
+        with Image.open(path) as im:
+            rgb = np.asarray(im.convert("RGB"))
+    except (UnidentifiedImageError, OSError, ValueError) as e:
+        raise ImageError(f"{path}: cannot decode the HEIC/HEIF image ({e}); re-export it as JPEG") from e
+    return rgb.astype(np.float32) / 255.0, 8
+
+
 def read_ldr(path: str | os.PathLike) -> tuple[np.ndarray, int]:
-    """Read a PNG/JPEG as float32 ``(H, W, C)`` in [0, 1] (still encoded) and its bit depth.
+    """Read a PNG/JPEG/HEIC as float32 ``(H, W, C)`` in [0, 1] (still encoded) and its bit depth.
 
     EXIF orientation is ignored: pixels are used as stored, like every other view.
     """
     import cv2
 
     path = Path(path)
+    if path.suffix.lower() in HEIF_EXTENSIONS:
+        return _read_heif(path)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
         raise ImageError(f"{path}: cannot decode the image (truncated or not a {path.suffix} file)")

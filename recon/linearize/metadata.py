@@ -24,7 +24,14 @@ from recon.io.dng import (
     tag_number,
     tag_rationals,
 )
-from recon.io.images import HDR_EXTENSIONS, IMAGE_EXTENSIONS, LDR_EXTENSIONS, RAW_EXTENSIONS
+from recon.io.images import (
+    HDR_EXTENSIONS,
+    HEIF_EXTENSIONS,
+    IMAGE_EXTENSIONS,
+    LDR_EXTENSIONS,
+    RAW_EXTENSIONS,
+    register_heif,
+)
 from recon.linearize.color import D65_XY, xy_to_xyz, xyz_to_camera
 from recon.linearize.settings import LinearizeError
 
@@ -192,6 +199,8 @@ def _focal_plane_px_per_mm(tag) -> float | None:
 def _read_ldr_meta(path: Path) -> View:
     from PIL import Image, UnidentifiedImageError
 
+    if path.suffix.lower() in HEIF_EXTENSIONS:
+        register_heif()
     view = View(path, "ldr")
     try:
         with Image.open(path) as im:
