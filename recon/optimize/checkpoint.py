@@ -11,10 +11,12 @@ fingerprint differs from the current run's is ignored.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import logging
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -65,9 +67,26 @@ def save(ckpt_dir: str | os.PathLike, state: dict) -> Path:
     """Write ``state`` as ``ckpt_dir/last.pt`` atomically; returns the path."""
     path = Path(ckpt_dir) / CHECKPOINT_NAME
     state = dict(state, format_version=FORMAT_VERSION)
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    try:
+        with atomic_path(path) as tmp:
+            torch.save(state, tmp)
+    except (OSError, RuntimeError) as e:
+        # torch's writer reports a full disk as "RuntimeError: [enforce fail at
+        # inline_container.cc:...] unexpected pos ...": say what it is and where
+        if getattr(e, "errno", None) == errno.ENOSPC or _disk_full(path.parent):
+            raise OSError(errno.ENOSPC, f"{path.parent}: no space left on device while writing the optimizer's "
+                                        "checkpoint; free some space there (or pass results= on another disk) "
+                                        "and rerun: the run resumes from its last checkpoint") from e
+        raise
     return path
+
+
+def _disk_full(folder: Path, margin: int = 1 << 20) -> bool:
+    """True when ``folder``'s file system has less than ``margin`` bytes free."""
+    try:
+        return shutil.disk_usage(folder).free < margin
+    except OSError:
+        return False
 
 
 def load(ckpt_dir: str | os.PathLike, expected_fingerprint: str) -> dict | None:
