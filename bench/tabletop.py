@@ -136,7 +136,12 @@ def run_sfm(cap: Path, work: Path, stems: list[str], gt: Path, run_tabletop_mask
     poses = work / "poses"
     t0 = time.perf_counter()
     if not (poses / "cameras.json").is_file():
-        run_poses(work / "linear", poses, masks_dir=work / "masks_today", linear_json=work / "linear" / "linear.json")
+        try:
+            run_poses(work / "linear", poses, masks_dir=work / "masks_today",
+                      linear_json=work / "linear" / "linear.json")
+        except ValueError as e:  # PoseError: recorded, the other numbers still count
+            log.warning("SfM failed: %s", e)
+            return {"error": str(e).splitlines()[0], "poses_seconds": time.perf_counter() - t0}
     t_poses = time.perf_counter() - t0
     est = load_cameras(poses / "cameras.json")
     true = load_cameras(cap / "gt" / "cameras.json")
@@ -184,7 +189,9 @@ def print_table(results: dict) -> None:
                 pe = tt[key]["plane_error"]
                 print(f"{obj}: plane ({key}) normal error {pe['normal_deg']:.3f} deg, offset "  # noqa: T201
                       f"{pe['offset']:.4f} units; {tt[key]['plane']['reason']}")
-        if "sfm" in tt:
+        if "sfm" in tt and "error" in tt["sfm"]:
+            print(f"{obj}: SfM failed: {tt['sfm']['error']}")  # noqa: T201
+        elif "sfm" in tt:
             e = tt["sfm"]["pose_errors"]
             print(f"{obj}: SfM registered {tt['sfm']['registered']} views in {tt['sfm']['poses_seconds']:.0f} s, "  # noqa: T201
                   f"{json.dumps({k: e[k] for k in e if not isinstance(e[k], (list, dict))})}")

@@ -28,8 +28,10 @@ them, with no learned weights:
    between object and table (where the object touches the table, the plane test alone cannot
    tell them apart: its points there lie on the plane).
 5. **Cross-check across views**: a second hull from the cut masks; each mask keeps only what
-   lies inside (a pixel of margin) its projection, and small holes are filled as in
-   :mod:`recon.masks` (large ones, like a mug's handle, stay open).
+   lies inside (a pixel of margin) its projection, and a hole in a mask is filled where the hull
+   of the other views' masks is solid (chance agreement with the table in one view), kept where
+   the other views see through it too (the table through a mug's handle), whatever its size
+   (:func:`hole_support`).
 
 Given masks (the capture's ``masks/``) still win, view by view. A capture without a support
 plane (a void capture, a hand-held object) keeps the flash-falloff masks of :mod:`recon.masks`,
@@ -76,10 +78,13 @@ class SegmentSettings:
     softness: float = 0.15  # the logistic's width
     carve_threshold: float = 0.5  # liberal masks for the hull
     carve_tolerance: float = 0.12  # a voxel survives this share of views that miss it
+    hole_tolerance: float = 0.05  # ... when the other views decide whether a hole is real
     hull_resolution: int = 96  # voxels along the longest side of the fine hull
     hull_margin_px: int = 6  # the mask stays inside the hull projection dilated by this
+    band_parallax_px: float = 3.0  # below the height where neighbours see less parallax, colours decide
+    colour_weight: float = 1.0  # weight of the colour models' log-likelihood ratio there
     smoothness: float = 2.0  # weight of the contrast-sensitive pairwise term
-    max_hole_fraction: float = 0.02  # holes smaller than this share of the object are filled
+    max_hole_fraction: float = 0.02  # liberal masks: holes smaller than this share of the object are filled
     min_views: int = 4  # fewer views: no tabletop masks
     plane: PlaneSettings = PlaneSettings()
     triangulate_pairs: int = 3  # known cameras: match each view with this many neighbours
@@ -158,6 +163,66 @@ def neighbours(cams: CameraSet, settings: SegmentSettings) -> list[list[int]]:
     return out
 
 
+def parallax_band(cams: CameraSet, nbrs: list[list[int]], foot: np.ndarray, parallax_px: float) -> float:
+    """Height above the plane below which a point shows less than ``parallax_px`` of parallax to
+    a typical neighbour (the median over views of the second nearest): there the plane test
+    cannot tell the object from the table. About ``parallax_px * depth / (f sin(angle))``."""
+    z = np.stack([c.camera_to_world[:3, 2] for c in cams])
+    heights = []
+    for i, cam in enumerate(cams):
+        if not nbrs[i]:
+            continue
+        angles = np.sort(np.arccos(np.clip(z[nbrs[i]] @ z[i], -1.0, 1.0)))
+        angle = angles[min(1, len(angles) - 1)]
+        depth = float(np.linalg.norm(cam.center - foot))
+        f = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
+        heights.append(parallax_px * depth / (f * max(np.sin(angle), 1e-3)))
+    return float(np.median(heights)) if heights else 0.0
+
+
+def colour_log_ratio(guide: np.ndarray, sure_fg: np.ndarray, sure_bg: np.ndarray, where: np.ndarray,
+                     components: int = 5, samples: int = 1500, seed: int = 0) -> np.ndarray | None:
+    """(H, W) log p(colour | object) - log p(colour | table) at ``where`` (0 elsewhere), from
+    Gaussian mixtures (OpenCV EM, CIE Lab) fitted to this view's ``sure_fg`` and ``sure_bg``
+    pixels; None when either has too few pixels or nothing is asked."""
+    import cv2
+
+    if not where.any() or sure_fg.sum() < 10 * components or sure_bg.sum() < 10 * components:
+        return None
+    lab = cv2.cvtColor(guide, cv2.COLOR_RGB2Lab).astype(np.float64)
+    rng = np.random.default_rng(seed)
+    out = np.zeros(guide.shape[:2])
+    query = lab[where]
+    logp = []
+    for sel in (sure_fg, sure_bg):
+        x = lab[sel]
+        if len(x) > samples:
+            x = x[rng.choice(len(x), samples, replace=False)]
+        em = cv2.ml.EM_create()
+        em.setClustersNumber(components)
+        em.setCovarianceMatrixType(cv2.ml.EM_COV_MAT_DIAGONAL)
+        em.setTermCriteria((cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 20, 1e-3))
+        em.trainEM(x)
+        logp.append(_em_loglik(em, query))
+    out[where] = np.clip(logp[0] - logp[1], -10.0, 10.0)
+    return out
+
+
+def _em_loglik(em, x: np.ndarray) -> np.ndarray:
+    """Log-likelihood of rows ``x (N, D)`` under a trained OpenCV EM model (diagonal covariances)."""
+    means = em.getMeans()
+    weights = em.getWeights().ravel()
+    covs = em.getCovs()
+    ll = []
+    for k in range(len(weights)):
+        var = np.maximum(np.diag(covs[k]), 1e-6)
+        d = (x - means[k]) ** 2 / var
+        ll.append(np.log(max(weights[k], 1e-12)) - 0.5 * (d.sum(1) + np.log(2 * np.pi * var).sum()))
+    ll = np.stack(ll, 1)
+    top = ll.max(1, keepdims=True)
+    return (top + np.log(np.exp(ll - top).sum(1, keepdims=True))).ravel()
+
+
 def display_image(rgb_linear: np.ndarray) -> np.ndarray:
     """(H, W, 3) uint8 sRGB of a linear image scaled by its 99.5th percentile (for edges)."""
     top = max(float(np.percentile(rgb_linear, 99.5)), 1e-12)
@@ -220,31 +285,47 @@ def plane_consistency(images: list[np.ndarray], cams: CameraSet, plane: SupportP
 # ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Hull:
-    """A carved hull: occupied voxel centers ``points (N, 3)``, the voxel size ``step`` and the
-    ``surface (M, 3)`` voxels (occupied, with an empty 6-neighbour): their footprints cover the
-    hull's silhouette in any view."""
+    """A carved hull: occupied voxel centers ``points (N, 3)``, the voxel size ``step``, the
+    ``surface (M, 3)`` voxels (occupied, with an empty 6-neighbour: their footprints cover the
+    hull's silhouette in any view), and ``band (K, 3)``: the surface voxels lower than the band
+    where the plane test cannot see parallax (extruded down to the plane, see :func:`carve`)."""
 
     points: np.ndarray
     step: float
     surface: np.ndarray
+    band: np.ndarray
 
     def bbox(self) -> tuple[np.ndarray, np.ndarray]:
         return self.points.min(0) - self.step, self.points.max(0) + self.step
 
-    def project(self, cam: Camera) -> np.ndarray:
-        """(H, W) bool: the hull's silhouette in ``cam`` (voxels splatted at their footprint)."""
+    def box_on(self, plane: SupportPlane) -> tuple[np.ndarray, float, float]:
+        """The hull's box on ``plane``: center of its footprint (on the plane), horizontal half
+        size and height."""
+        B = plane.basis()
+        q = self.points @ B[:2].T
+        lo, hi = q.min(0), q.max(0)
+        mid = 0.5 * (lo + hi)
+        foot = plane.project(mid[0] * B[0] + mid[1] * B[1])
+        return foot, 0.5 * float(np.max(hi - lo)) + self.step, float(plane.height(self.points).max()) + self.step
+
+    def project(self, cam: Camera, which: str = "surface") -> np.ndarray:
+        """(H, W) bool: the silhouette in ``cam`` of the hull (``which="surface"``) or of its low
+        band (``"band"``), voxels splatted at their footprint."""
         import cv2
 
-        xy, z = cam.project(self.surface)
-        front = z > 1e-9
+        pts = self.surface if which == "surface" else self.band
         out = np.zeros((cam.height, cam.width), np.uint8)
+        if len(pts) == 0:
+            return out.astype(bool)
+        xy, z = cam.project(pts)
+        front = z > 1e-9
         if not front.any():
             return out.astype(bool)
         xy, z = xy[front], z[front]
         f = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
-        radius = 0.5 * np.sqrt(3.0) * self.step * f / z  # half the voxel's diagonal, pixels
-        for r in np.unique(np.clip(np.ceil(radius), 1, 64).astype(int)):
-            sel = np.clip(np.ceil(radius), 1, 64).astype(int) == r
+        radius = np.clip(np.ceil(0.5 * np.sqrt(3.0) * self.step * f / z), 1, 64).astype(int)  # half diagonal
+        for r in np.unique(radius):
+            sel = radius == r
             layer = np.zeros_like(out)
             ij = np.floor(xy[sel]).astype(int)
             ok = (ij[:, 0] >= 0) & (ij[:, 0] < cam.width) & (ij[:, 1] >= 0) & (ij[:, 1] < cam.height)
@@ -253,41 +334,110 @@ class Hull:
         return out.astype(bool)
 
 
-def carve(masks: list[np.ndarray], cams: CameraSet, plane: SupportPlane, lo: np.ndarray, hi: np.ndarray,
-          resolution: int, tolerance: float, seed_point: np.ndarray | None = None) -> Hull | None:
-    """Voxels in the box [lo, hi] above ``plane`` that project inside the masks of all views
-    that see them but ``tolerance`` of them (a view's own misses do not carve), the connected
-    component nearest ``seed_point``. None when nothing survives."""
+UNKNOWN = 2
+"""A mask value (uint8 masks of :func:`carve`): the view cannot tell; it neither keeps nor carves."""
+
+
+def _plane_grid(plane: SupportPlane, center, half: float, height: float, resolution: int, band: float):
+    """Voxel centers ``pts (N, 3)`` of the grid of :func:`carve` (axes e1, e2, normal), its
+    ``shape``, ``step``, the first layer above the band ``k_band`` and the tested voxels ``idx``."""
+    B = plane.basis()
+    foot = plane.project(np.asarray(center, float))
+    step = 2.0 * float(half) / resolution
+    nu = max(int(resolution), 1)
+    nw = max(int(np.ceil(float(height) / step)), 1)
+    u = -half + (np.arange(nu) + 0.5) * step
+    w = (np.arange(nw) + 0.5) * step
+    U, V, Wh = np.meshgrid(u, u, w, indexing="ij")
+    pts = foot + U[..., None] * B[0] + V[..., None] * B[1] + Wh[..., None] * B[2]
+    shape = pts.shape[:3]
+    k_band = int(np.clip(np.ceil(band / step - 0.5), 0, nw - 1)) if band > 0 else 0
+    tested = np.zeros(shape, bool)
+    tested[:, :, k_band:] = True  # voxels tested against the masks; those below copy the band's top
+    return pts.reshape(-1, 3), shape, step, k_band, np.flatnonzero(tested.reshape(-1))
+
+
+def _view_values(mask: np.ndarray, cam: Camera, points: np.ndarray) -> np.ndarray:
+    """(N,) uint8 mask value at each point's pixel: 0, 1, or :data:`UNKNOWN` (outside the view)."""
+    P = (cam.K @ cam.world_to_camera[:3, :]).astype(np.float32)
+    h = np.asarray(points, np.float32) @ P[:, :3].T + P[:, 3]
+    z = h[:, 2]
+    zs = np.where(z > 1e-12, z, np.float32(1.0))
+    j = np.floor(h[:, 0] / zs).astype(np.int64)
+    i = np.floor(h[:, 1] / zs).astype(np.int64)
+    inside = (z > 0) & (j >= 0) & (j < cam.width) & (i >= 0) & (i < cam.height)
+    value = np.full(len(points), UNKNOWN, np.uint8)
+    value[inside] = mask[i[inside], j[inside]]
+    return value
+
+
+def _shell(occ: np.ndarray) -> np.ndarray:
     from scipy import ndimage
 
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    step = float(np.max(hi - lo)) / resolution
-    shape = np.maximum(np.ceil((hi - lo) / step).astype(int), 1)
-    axes = [lo[k] + (np.arange(shape[k]) + 0.5) * step for k in range(3)]
-    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    keep = plane.height(pts) > 0.5 * step
-    idx = np.flatnonzero(keep)
+    return occ & ~ndimage.binary_erosion(occ, border_value=0)
+
+
+def hole_support(masks: list[np.ndarray], cams: CameraSet, plane: SupportPlane, center: np.ndarray,
+                 half: float, height: float, resolution: int, tolerance: float, band: float = 0.0,
+                 views: list[int] | None = None) -> dict[int, np.ndarray]:
+    """Per view (index: ``views``, default all), the silhouette of the hull carved by the OTHER
+    views' masks (leave one out).
+
+    A hole in view i's mask that this silhouette covers is contradicted by the other views (a
+    patch where the object happened to agree with the table); a real opening (the table seen
+    through a handle) is seen by a few other views too, which carve it away. ``tolerance`` is
+    the share of the other views' misses a voxel survives (small: the few views that look
+    through a handle must be enough).
+    """
+    pts, shape, step, k_band, idx = _plane_grid(plane, center, half, height, resolution, band)
     q = pts[idx].astype(np.float32)
-    seen = np.zeros(len(idx), np.int32)
-    miss = np.zeros(len(idx), np.int32)
-    for m, cam in zip(masks, cams, strict=True):
-        P = (cam.K @ cam.world_to_camera[:3, :]).astype(np.float32)
-        h = q @ P[:, :3].T + P[:, 3]
-        z = h[:, 2]
-        zs = np.where(z > 1e-12, z, np.float32(1.0))
-        j = np.floor(h[:, 0] / zs).astype(np.int64)
-        i = np.floor(h[:, 1] / zs).astype(np.int64)
-        inside = (z > 0) & (j >= 0) & (j < cam.width) & (i >= 0) & (i < cam.height)
-        seen += inside
-        hit = np.zeros(len(idx), bool)
-        hit[inside] = m[i[inside], j[inside]]
-        miss += inside & ~hit
+    values = [_view_values(m, cam, q) for m, cam in zip(masks, cams, strict=True)]
+    seen = np.sum([v != UNKNOWN for v in values], axis=0)
+    miss = np.sum([v == 0 for v in values], axis=0)
+    out = {}
+    for k in range(len(cams)) if views is None else views:
+        cam, v = cams.frames[k], values[k]
+        s_o = seen - (v != UNKNOWN)
+        m_o = miss - (v == 0)
+        occ = np.zeros(len(pts), bool)
+        occ[idx[(s_o >= 2) & (m_o <= np.floor(tolerance * s_o))]] = True
+        occ = occ.reshape(shape)
+        if k_band > 0:
+            occ[:, :, :k_band] = occ[:, :, k_band:k_band + 1]
+        hull = Hull(pts[occ.reshape(-1)], step, pts[_shell(occ).reshape(-1)], np.zeros((0, 3)))
+        out[k] = hull.project(cam) if len(hull.points) else np.zeros((cam.height, cam.width), bool)
+    return out
+
+
+def carve(masks: list[np.ndarray], cams: CameraSet, plane: SupportPlane, center: np.ndarray, half: float,
+          height: float, resolution: int, tolerance: float, seed_point: np.ndarray | None = None,
+          band: float = 0.0, min_voxels: int = 8) -> Hull | None:
+    """A visual hull standing on ``plane``, on a grid aligned with it.
+
+    The box: ``half`` either side of ``center``'s foot on the plane, from the plane up to
+    ``height``, ``resolution`` voxels across. A voxel is kept when it projects inside the masks
+    of all views that see it but ``tolerance`` of them (a view's own misses do not carve). Masks
+    are bool, or uint8 with :data:`UNKNOWN` where the view cannot tell (that view does not count
+    for the voxel). Voxels lower than ``band`` (where the plane test sees too little parallax to
+    tell object from table) take the value of the first layer above it: the object stands on the
+    plane. The connected component nearest ``seed_point`` (default the largest) is returned;
+    None when fewer than ``min_voxels`` survive.
+    """
+    from scipy import ndimage
+
+    pts, shape, step, k_band, idx = _plane_grid(plane, center, half, height, resolution, band)
+    q = pts[idx].astype(np.float32)
+    values = [_view_values(m, cam, q) for m, cam in zip(masks, cams, strict=True)]
+    seen = np.sum([v != UNKNOWN for v in values], axis=0)
+    miss = np.sum([v == 0 for v in values], axis=0)
     ok = (seen >= 2) & (miss <= np.floor(tolerance * seen))
     occ = np.zeros(len(pts), bool)
     occ[idx[ok]] = True
     occ = occ.reshape(shape)
+    if k_band > 0:
+        occ[:, :, :k_band] = occ[:, :, k_band:k_band + 1]
     labels, n = ndimage.label(occ)
-    if n == 0:
+    if n == 0 or occ.sum() < min_voxels:
         return None
     sizes = ndimage.sum_labels(occ, labels, index=np.arange(1, n + 1))
     if seed_point is not None and n > 1:
@@ -299,8 +449,12 @@ def carve(masks: list[np.ndarray], cams: CameraSet, plane: SupportPlane, lo: np.
     else:
         label = 1 + int(np.argmax(sizes))
     occ = labels == label
-    shell = occ & ~ndimage.binary_erosion(occ, border_value=0)
-    return Hull(pts[occ.reshape(-1)], step, pts[shell.reshape(-1)])
+    if occ.sum() < min_voxels:
+        return None
+    shell = _shell(occ)
+    low = np.zeros(shape, bool)
+    low[:, :, :max(k_band, 0)] = True
+    return Hull(pts[occ.reshape(-1)], step, pts[shell.reshape(-1)], pts[(shell & low).reshape(-1)])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -366,6 +520,26 @@ def _fill_small_holes(mask: np.ndarray, max_fraction: float) -> np.ndarray:
     sizes = ndimage.sum_labels(holes, hl, index=np.arange(1, nh + 1))
     small = np.flatnonzero(sizes <= max_fraction * mask.sum()) + 1
     return mask | np.isin(hl, small)
+
+
+def _has_holes(mask: np.ndarray) -> bool:
+    from scipy import ndimage
+
+    return bool((ndimage.binary_fill_holes(mask) & ~mask).any())
+
+
+def _fill_holes_inside(mask: np.ndarray, solid: np.ndarray) -> np.ndarray:
+    """``mask`` with each hole filled where ``solid`` (a hull projection) covers 90% of it: a
+    hole the other views contradict (a patch of chance agreement with the table) is filled, one
+    they share (the table seen through a handle) stays open."""
+    from scipy import ndimage
+
+    holes = ndimage.binary_fill_holes(mask) & ~mask
+    if not holes.any():
+        return mask
+    hl, nh = ndimage.label(holes)
+    covered = ndimage.mean(solid, hl, index=np.arange(1, nh + 1))
+    return mask | np.isin(hl, np.flatnonzero(covered >= 0.9) + 1)
 
 
 def _components_touching(mask: np.ndarray, region: np.ndarray) -> np.ndarray:
@@ -441,23 +615,25 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
     target = aim_point(cams)
     scale = scene_scale(cams, target)
     foot = plane.project(target)
-    liberal = [_fill_small_holes((c > settings.carve_threshold) | ~np.isfinite(c), settings.max_hole_fraction)
-               for c in C]
-    half = 0.6 * scale
-    lo = foot - half
-    hi = foot + half
-    hull = carve(liberal, cams, plane, lo, hi, max(32, settings.hull_resolution // 2), settings.carve_tolerance,
-                 seed_point=foot + 0.05 * scale * plane.normal)
+    liberal = [np.where(np.isfinite(c), _fill_small_holes(c > settings.carve_threshold, settings.max_hole_fraction),
+                        UNKNOWN).astype(np.uint8) for c in C]
+    band = parallax_band(cams, nbrs, foot, settings.band_parallax_px)
+    hull = carve(liberal, cams, plane, foot, 0.6 * scale, 0.8 * scale, max(32, settings.hull_resolution // 2),
+                 settings.carve_tolerance, seed_point=foot + 0.05 * scale * plane.normal, band=band)
     if hull is None:
         raise SegmentError(
             "no object stands on the support plane: no region of the views is inconsistent with the table in "
             "all of them (views: " + ", ".join(c.stem for c in cams) + "). What to try: check that the object "
             "is in the middle of every photo, that the table is in focus and textured, or give masks/ in the "
             "capture")
-    blo, bhi = hull.bbox()
+    box_foot, box_half, box_height = hull.box_on(plane)
     pad = 4 * hull.step
-    hull = carve(liberal, cams, plane, blo - pad, bhi + pad, settings.hull_resolution, settings.carve_tolerance,
-                 seed_point=0.5 * (blo + bhi))
+    box = (box_foot, box_half + pad, box_height + pad)
+    hull = carve(liberal, cams, plane, *box, settings.hull_resolution, settings.carve_tolerance,
+                 seed_point=box_foot + 0.5 * box_height * plane.normal, band=band)
+    if hull is None:
+        raise SegmentError("the object's hull vanished at full resolution: the views disagree about it (views: "
+                           + ", ".join(c.stem for c in cams) + "); check the cameras, or give masks/ in the capture")
     timings["hull_s"] = time.perf_counter() - t1
 
     # ---- step 4: graph cut per view inside the hull projection ----
@@ -468,6 +644,14 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
         active = _dilate(region, settings.hull_margin_px)
         c = np.where(np.isfinite(C[i]), C[i], settings.threshold)
         z = np.clip((c - settings.threshold) / settings.softness, -30, 30)
+        # where the object stands low on the table the plane test sees no parallax: a table-like C
+        # there says nothing; the colours of this view's sure object and sure table decide
+        low = hull.project(cam, "band") & (z < 0)
+        llr = colour_log_ratio(guides[i], sure_fg=region & (z > 2) & ~low,
+                               sure_bg=_dilate(region, 3 * settings.hull_margin_px) & (z < -2) & ~low,
+                               where=low)
+        if llr is not None:
+            z = np.where(low, np.clip(settings.colour_weight * llr, -30, 30), z)
         cost_fg = np.logaddexp(0.0, -z)  # -log sigmoid(z)
         cost_bg = np.logaddexp(0.0, z)
         m = graph_cut(cost_fg, cost_bg, guides[i], settings.smoothness, active)
@@ -478,15 +662,21 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
 
     # ---- step 5: cross-check with a hull of the cut masks ----
     t1 = time.perf_counter()
-    blo, bhi = hull.bbox()
-    hull2 = carve(masks, cams, plane, blo - pad, bhi + pad, settings.hull_resolution, settings.carve_tolerance,
-                  seed_point=0.5 * (blo + bhi))
+    hull2 = carve(masks, cams, plane, *box, settings.hull_resolution, settings.carve_tolerance,
+                  seed_point=box_foot + 0.5 * box_height * plane.normal)
+    if hull2 is not None:
+        masks = [m & _dilate(hull2.project(cam), 1) for m, cam in zip(masks, cams, strict=True)]
+        with_holes = [i for i, m in enumerate(masks) if _has_holes(m)]
+        support = hole_support(masks, cams, plane, *box, settings.hull_resolution, settings.hole_tolerance,
+                               band=band, views=with_holes)
     bad = []
     for i, cam in enumerate(cams):
         m = masks[i]
         if hull2 is not None:
-            m = m & _dilate(hull2.project(cam), 1)
-        m = _fill_small_holes(m, settings.max_hole_fraction)
+            if i in support:
+                m = _fill_holes_inside(m, support[i])
+        else:
+            m = _fill_small_holes(m, settings.max_hole_fraction)
         masks[i] = m
         v = views[cam.stem]
         v["coverage"] = float(m.mean())
@@ -508,7 +698,7 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
                         for z in (hb_lo[2], hb_hi[2])])
     info = {"views": views, "neighbours": {cams.frames[i].stem: [cams.frames[j].stem for j in nbrs[i]]
                                            for i in range(n)},
-            "hull": {"step": (hull2 or hull).step, "voxels": int(len((hull2 or hull).points)),
+            "hull": {"step": (hull2 or hull).step, "parallax_band": band, "voxels": int(len((hull2 or hull).points)),
                      "bbox_lo": hb_lo.tolist(), "bbox_hi": hb_hi.tolist(),
                      "height": float(plane.height(corners).max())},
             "timings": {**timings, "total_s": time.perf_counter() - t0}}

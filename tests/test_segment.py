@@ -1,0 +1,246 @@
+"""Tabletop masks (recon.segment): the object apart from the table, against the true silhouettes."""
+
+import json
+import logging
+
+import numpy as np
+import pytest
+from _geometry_scene import icosphere, silhouette, synth_capture
+from _tabletop_scene import TABLETOP_TEST, tabletop_capture
+
+from recon import segment as sg
+from recon.io.cameras import load_cameras
+from recon.io.images import read_exr, read_mask, write_exr, write_mask
+from recon.io.mesh import Mesh
+from recon.masks import derive_mask, run_masks
+from recon.support import SupportPlane, load_plane
+from recon.synth.capture import SynthSettings
+from recon.synth.tabletop import table_texture, tabletop_cameras
+from recon.synth.textures import bilinear_lookup
+
+
+def _iou(a, b):
+    return (a & b).sum() / max((a | b).sum(), 1)
+
+
+@pytest.fixture(scope="module")
+def mug(tmp_path_factory):
+    return tabletop_capture(tmp_path_factory.getbasetemp())
+
+
+@pytest.fixture(scope="module")
+def mug_masks(mug, tmp_path_factory):
+    """The tabletop masks of the mug capture with its true cameras; the plane comes from points
+    triangulated in the views (not from gt/plane.json)."""
+    out = tmp_path_factory.mktemp("segment") / "masks"
+    summary = sg.run_tabletop_masks(mug / "images", mug / "gt" / "cameras.json", out)
+    return out, summary
+
+
+@pytest.fixture(scope="module")
+def table_only():
+    """Cameras of a tabletop capture and exact renders of the bare table (Lambertian wood, the
+    flash at each camera: I a_d / pi * h / r^3), no object."""
+    s = SynthSettings(**{**TABLETOP_TEST, "n_views": 12, "width": 96, "height": 72})
+    cams = tabletop_cameras(s)
+    plane = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.8)
+    half = s.table_half_size
+    tex = table_texture(256, half, seed=4)
+    images = []
+    for cam in cams:
+        P, hit = sg.plane_points(cam, plane)
+        uv = np.stack([(P[..., 0] + half) / (2 * half), (P[..., 1] + half) / (2 * half)], -1)
+        a = bilinear_lookup(tex, uv)
+        shade = sg.flash_shading(cam.center, P, plane)
+        on = hit & (np.abs(P[..., :2]) < half).all(-1)
+        images.append(np.where(on[..., None], cams.light_intensity * a / np.pi * shade[..., None], 0.0)
+                      .astype(np.float32))
+    return cams, plane, images
+
+
+# ---- geometry ----
+def test_plane_homography_maps_plane_points():
+    cams = tabletop_cameras(SynthSettings(**{**TABLETOP_TEST, "n_views": 6}))
+    plane = SupportPlane(np.array([0.1, -0.05, 1.0]), 0.8)
+    rng = np.random.default_rng(0)
+    pts = plane.project(rng.uniform(-1.5, 1.5, (50, 3)))
+    ci, cj = cams.frames[0], cams.frames[3]
+    H = sg.plane_homography(ci, cj, plane)
+    xi, _ = ci.project(pts)
+    xj, _ = cj.project(pts)
+    h = np.c_[xi - 0.5, np.ones(len(pts))] @ H.T  # OpenCV pixel coordinates
+    np.testing.assert_allclose(h[:, :2] / h[:, 2:], xj - 0.5, atol=1e-6)
+
+
+def test_plane_points_and_flash_shading():
+    cams = tabletop_cameras(SynthSettings(**{**TABLETOP_TEST, "n_views": 3}))
+    plane = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.8)
+    cam = cams.frames[1]
+    P, hit = sg.plane_points(cam, plane)
+    assert hit[-1].all()  # the bottom row sees the table
+    np.testing.assert_allclose(plane.height(P[hit]), 0.0, atol=1e-9)
+    xy, _ = cam.project(P[hit])
+    j, i = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+    np.testing.assert_allclose(xy, np.stack([j, i], -1)[hit], atol=1e-6)
+    r = np.linalg.norm(P[hit] - cam.center, axis=1)
+    mu = plane.height(cam.center) / r
+    np.testing.assert_allclose(sg.flash_shading(cam.center, P[hit], plane), mu / r**2)
+
+
+def test_graph_cut_recovers_a_region():
+    rng = np.random.default_rng(0)
+    truth = np.zeros((60, 80), bool)
+    truth[15:45, 20:60] = True
+    p = np.clip(np.where(truth, 0.75, 0.25) + rng.normal(0, 0.25, truth.shape), 0.02, 0.98)
+    guide = np.repeat((truth * 200 + 30).astype(np.uint8)[..., None], 3, 2)
+    raw = p > 0.5
+    cut = sg.graph_cut(-np.log(p), -np.log(1 - p), guide, smoothness=2.0)
+    assert (cut != truth).mean() < 0.2 * (raw != truth).mean()
+    active = np.zeros_like(truth)
+    active[:, :40] = True
+    cut = sg.graph_cut(-np.log(p), -np.log(1 - p), guide, smoothness=2.0, active=active)
+    assert not cut[:, 40:].any() and _iou(cut, truth & active) > 0.95
+
+
+def test_carve_tolerates_a_bad_view():
+    """A sphere standing on the plane: the hull holds it even when one view's mask is empty, and
+    its projection covers every silhouette."""
+    cams = tabletop_cameras(SynthSettings(**{**TABLETOP_TEST, "n_views": 12, "width": 96, "height": 72}))
+    ball = icosphere(3)
+    ball = Mesh(ball.v_pos * 0.6 + [0.0, 0.0, -0.2], ball.t_pos_idx)
+    plane = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.8)
+    masks = [silhouette(ball, c) for c in cams]
+    masks[4] = np.zeros_like(masks[4])
+    hull = sg.carve(masks, cams, plane, np.zeros(3), 1.5, 1.8, 48, 0.12)
+    lo, hi = hull.bbox()
+    np.testing.assert_allclose(lo, [-0.6, -0.6, -0.8], atol=2.5 * hull.step)
+    np.testing.assert_allclose(hi, [0.6, 0.6, 0.4], atol=2.5 * hull.step)
+    for cam, m in zip(cams, masks, strict=True):
+        proj = hull.project(cam)
+        if m.any():
+            assert (m & ~proj).sum() <= 0.01 * m.sum()
+            assert _iou(proj, m) > 0.75
+    assert sg.carve([np.zeros_like(m) for m in masks], cams, plane, np.zeros(3), 1.5, 1.8, 16, 0.12) is None
+    # below the band the hull is the extrusion of its section at the band's height: the object
+    # stands on the plane (at height 0.3 the ball's section has radius sqrt(0.6^2 - 0.3^2) = 0.52)
+    banded = sg.carve(masks, cams, plane, np.zeros(3), 1.5, 1.8, 48, 0.12, band=0.3)
+    low = banded.points[plane.height(banded.points) < 0.3 - banded.step]
+    r = np.linalg.norm(low[:, :2], axis=1)
+    assert r.max() == pytest.approx(0.52, abs=2 * banded.step)
+    assert len(banded.band) > 0 and plane.height(banded.band).max() < 0.3
+
+
+# ---- consistency and errors on the bare table ----
+def test_bare_table_is_consistent_and_holds_no_object(table_only):
+    cams, plane, images = table_only
+    nbrs = sg.neighbours(cams, sg.SegmentSettings())
+    for i in (0, 7):
+        C = sg.plane_consistency(images, cams, plane, i, nbrs[i])
+        seen = np.isfinite(C)
+        assert seen.mean() > 0.5
+        assert np.median(C[seen]) < 0.1 and np.percentile(C[seen], 95) < sg.SegmentSettings().carve_threshold
+    with pytest.raises(sg.SegmentError, match=r"no object stands on the support plane.*0000.*What to try"):
+        sg.segment_tabletop(images, cams, plane)
+
+
+# ---- the mug on the table ----
+def test_masks_match_the_true_silhouettes(mug, mug_masks):
+    out, summary = mug_masks
+    cams = load_cameras(mug / "gt" / "cameras.json")
+    assert summary["method"] == "tabletop" and summary["plane"]["found"]
+    assert "triangulated" in summary["plane"]["source"]
+    ious, today = [], []
+    linear = {c.stem: read_exr(mug / c.image) for c in cams}
+    for cam in cams:
+        gt = read_mask(mug / "gt" / "masks" / f"{cam.stem}.png")
+        ious.append(_iou(read_mask(out / f"{cam.stem}.png"), gt))
+        today.append(_iou(derive_mask(linear[cam.stem])[0], gt))
+        assert summary["views"][cam.stem]["source"] == "tabletop"
+    assert np.mean(ious) > 0.96 and np.min(ious) > 0.93, np.round(ious, 3)
+    assert np.mean(today) < 0.6  # the flash-falloff masks take the table too
+
+
+def test_handle_hole_stays_open(mug, mug_masks):
+    """Where the table shows through the mug's handle, the masks keep it out."""
+    from scipy import ndimage
+
+    out, _ = mug_masks
+    checked = 0
+    for cam in load_cameras(mug / "gt" / "cameras.json"):
+        gt = read_mask(mug / "gt" / "masks" / f"{cam.stem}.png")
+        hole = ndimage.binary_fill_holes(gt) & ~gt
+        hole = ndimage.binary_erosion(hole, iterations=2)  # open holes (not edge-on slivers), inner part
+        if hole.sum() < 10:
+            continue
+        checked += 1
+        assert read_mask(out / f"{cam.stem}.png")[hole].mean() < 0.2, cam.stem
+    assert checked >= 3
+
+
+def test_plane_and_outputs(mug, mug_masks):
+    out, summary = mug_masks
+    plane, true = load_plane(out / "plane.json"), load_plane(mug / "gt" / "plane.json")
+    assert np.degrees(np.arccos(plane.normal @ true.normal)) < 0.5
+    assert abs(true.height(plane.point[None])[0]) < 0.02
+    record = json.loads((out / "plane.json").read_text())
+    lo, hi = np.array(record["object_bbox"]["lo"]), np.array(record["object_bbox"]["hi"])
+    bottom = true.height(np.array([lo]))[0]
+    assert -0.1 < bottom < 0.1 and np.all(hi - lo > 1.0)  # the mug's box, standing on the table
+    saved = json.loads((out / "masks.json").read_text())
+    assert saved["method"] == "tabletop" and set(saved["views"]) == set(summary["views"])
+    names = {p.name for p in out.iterdir()}
+    assert names == {f"{s}.png" for s in summary["views"]} | {"masks.json", "plane.json"}
+
+
+def test_given_masks_win(mug, tmp_path):
+    cams = load_cameras(mug / "gt" / "cameras.json")
+    given = tmp_path / "given"
+    box = np.zeros((cams.frames[2].height, cams.frames[2].width), bool)
+    box[10:40, 20:70] = True
+    write_mask(given / f"{cams.frames[2].stem}.png", box)
+    write_mask(given / f"{cams.frames[3].stem}.png", np.ones((5, 5), bool))
+    with pytest.raises(sg.MaskError, match=r"0003\.png: mask is 5x5"):
+        sg.run_tabletop_masks(mug / "images", mug / "gt" / "cameras.json", tmp_path / "m", given_dir=given)
+    (given / f"{cams.frames[3].stem}.png").unlink()
+    # every view given: nothing is derived, no plane is looked for
+    for cam in cams:
+        write_mask(given / f"{cam.stem}.png", box)
+    summary = sg.run_tabletop_masks(mug / "images", mug / "gt" / "cameras.json", tmp_path / "m", given_dir=given)
+    assert {v["source"] for v in summary["views"].values()} == {"given"}
+    assert not summary["plane"]["found"]
+    np.testing.assert_array_equal(read_mask(tmp_path / "m" / f"{cams.frames[2].stem}.png"), box)
+
+
+def test_void_capture_keeps_the_flash_falloff_masks(tmp_path_factory, tmp_path, caplog):
+    """No support plane (a blob alone, cameras all around): today's masks, with a note."""
+    cap = synth_capture(tmp_path_factory.getbasetemp(), n_views=3, width=192, height=160, write_masks=True,
+                        seed=3)
+    cams_path = cap / "gt" / "cameras.json"
+    with caplog.at_level(logging.INFO, logger="recon.segment"):
+        summary = sg.run_tabletop_masks(cap / "images", cams_path, tmp_path / "tab",
+                                        settings=sg.SegmentSettings(min_views=3))
+    assert summary["method"] == "flash_falloff" and not summary["plane"]["found"]
+    assert "no support plane" in caplog.text
+    run_masks(cap / "images", tmp_path / "today")
+    for cam in load_cameras(cams_path):
+        np.testing.assert_array_equal(read_mask(tmp_path / "tab" / f"{cam.stem}.png"),
+                                      read_mask(tmp_path / "today" / f"{cam.stem}.png"))
+    assert not (tmp_path / "tab" / "plane.json").exists()
+
+
+def test_missing_image_names_the_file(mug, tmp_path):
+    cams = load_cameras(mug / "gt" / "cameras.json")
+    imgs = tmp_path / "images"
+    for cam in cams.frames[:-1]:
+        write_exr(imgs / f"{cam.stem}.exr", read_exr(mug / cam.image))
+    with pytest.raises(sg.MaskError, match=rf"{cams.frames[-1].stem}\.exr"):
+        sg.run_tabletop_masks(imgs, mug / "gt" / "cameras.json", tmp_path / "m")
+
+
+def test_settings_are_checked():
+    with pytest.raises(ValueError, match="min_angle"):
+        sg.SegmentSettings(min_angle=50.0, max_angle=40.0)
+    with pytest.raises(ValueError, match="carve_tolerance"):
+        sg.SegmentSettings(carve_tolerance=0.6)
+    s = sg.SegmentSettings(plane={"inlier_distance": 0.01})
+    assert s.plane.inlier_distance == 0.01
