@@ -46,6 +46,7 @@ import json
 import logging
 import os
 import time
+from collections.abc import Collection
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -789,6 +790,7 @@ def run_tabletop_masks(
     points: str | os.PathLike | None = None,
     given_dir: str | os.PathLike | None = None,
     mask_settings: MaskSettings | None = None,
+    given_stems: Collection[str] | None = None,
 ) -> dict:
     """Write ``out_dir/<stem>.png`` (object masks), ``out_dir/masks.json`` and, when a support
     plane is found, ``out_dir/plane.json`` (:mod:`recon.support`, in the frame of ``cameras``).
@@ -802,6 +804,9 @@ def run_tabletop_masks(
     points : a PLY of sparse points in the frame of ``cameras`` (``poses/points.ply``); without
         it, points are triangulated from the views (:func:`triangulate_points`).
     given_dir : the capture's ``masks/``: ``<stem>.png`` there wins over the derived mask.
+    given_stems : only these views' masks in ``given_dir`` count as given (e.g. after SfM,
+        ``poses/undistorted/masks`` holds every view's mask of the masks stage; the views whose
+        ``masks.json`` source is ``given`` are the capture's own).
     mask_settings : the flash-falloff masks' settings, used when no plane is found.
 
     Returns
@@ -824,7 +829,7 @@ def run_tabletop_masks(
     if given_dir is not None:
         for cam in cams:
             p = Path(given_dir) / f"{cam.stem}.png"
-            if p.is_file():
+            if p.is_file() and (given_stems is None or cam.stem in given_stems):
                 m = read_mask(p)
                 if m.shape != (cam.height, cam.width):
                     raise MaskError(f"{p}: mask is {m.shape[1]}x{m.shape[0]} but the image is "

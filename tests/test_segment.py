@@ -216,10 +216,13 @@ def test_void_capture_keeps_the_flash_falloff_masks(tmp_path_factory, tmp_path, 
     cap = synth_capture(tmp_path_factory.getbasetemp(), n_views=3, width=192, height=160, write_masks=True,
                         seed=3)
     cams_path = cap / "gt" / "cameras.json"
+    given = tmp_path / "given"  # a mask beside the photos that is not the capture's own
+    write_mask(given / "0000.png", np.ones((160, 192), bool))
     with caplog.at_level(logging.INFO, logger="recon.segment"):
         summary = sg.run_tabletop_masks(cap / "images", cams_path, tmp_path / "tab",
-                                        settings=sg.SegmentSettings(min_views=3))
+                                        settings=sg.SegmentSettings(min_views=3), given_dir=given, given_stems=[])
     assert summary["method"] == "flash_falloff" and not summary["plane"]["found"]
+    assert {v["source"] for v in summary["views"].values()} == {"derived"}
     assert "no support plane" in caplog.text
     run_masks(cap / "images", tmp_path / "today")
     for cam in load_cameras(cams_path):
