@@ -152,17 +152,29 @@ def run_sfm(cap: Path, work: Path, stems: list[str], gt: Path, run_tabletop_mask
                              points=poses / "points.ply")
     seconds = time.perf_counter() - t0
     registered = [c.stem for c in est]
-    shapes_ok = all(read_mask(work / "masks_sfm" / f"{s}.png").shape == read_mask(gt / f"{s}.png").shape
-                    for s in registered)
-    if shapes_ok:
-        out.update(summary(iou_per_view(work / "masks_sfm", gt, registered), seconds))
-    else:
-        out.update({"seconds": seconds, "note": "the undistorted views differ in size from the photos: no IoU"})
+    # the true masks in the undistorted pinhole views, resampled as the poses stage resamples masks
+    gt_und = work / "gt_masks_undistorted"
+    undistort_masks(poses, gt, gt_und, registered)
+    out.update(summary(iou_per_view(work / "masks_sfm", gt_und, registered), seconds))
     out["method"] = seg["method"]
     out["plane"] = seg["plane"]
     out["plane_error"] = plane_error(work / "masks_sfm" / "plane.json", cap / "gt" / "plane.json", sim)
     out["unregistered"] = sorted(set(stems) - set(registered))
     return out
+
+
+def undistort_masks(poses: Path, src: Path, dst: Path, stems: list[str]) -> None:
+    """``src/<stem>.png`` (photo pixels) resampled into the poses stage's pinhole views."""
+    import pycolmap
+
+    from recon.io.images import write_mask
+    from recon.poses.undistort import pinhole_camera, remap, undistort_maps
+
+    rec = pycolmap.Reconstruction(str(poses / "sparse"))
+    cam = next(iter(rec.cameras.values()))
+    maps = undistort_maps(cam, pinhole_camera(cam, cam.model.name))
+    for s in stems:
+        write_mask(dst / f"{s}.png", remap(read_mask(src / f"{s}.png").astype(np.float32), maps) >= 0.5)
 
 
 def print_table(results: dict) -> None:

@@ -16,7 +16,8 @@ them, with no learned weights:
    over a small window that follows the image's edges (guided filter), and its minimum over
    the neighbours (a table point that the object hides from one neighbour is seen by another)
    give C_i: ~0.1-0.3 on the table, >~1 on the object. Dark pixels (far table, dim background)
-   are consistent by construction (a noise floor), which keeps the unlit background out.
+   are consistent by construction (a noise floor); pixels below the flash-falloff threshold of
+   :mod:`recon.masks` (the background the flash hardly reaches) are never object.
 3. **A visual hull above the plane** (:func:`carve`) from the liberal masks C_i > ``carve_threshold``,
    tolerant of a few views' misses, restricted to what stands on the plane near the point the
    cameras aim at: the object's 3D region. Its projection bounds each view's mask (the seed
@@ -55,7 +56,7 @@ import numpy as np
 from recon.io.atomic import atomic_dir
 from recon.io.cameras import Camera, CameraSet, load_cameras
 from recon.io.images import ImageError, linear_to_srgb, read_exr, read_mask, write_mask
-from recon.masks import MaskError, MaskSettings, derive_mask
+from recon.masks import LUMA, MaskError, MaskSettings, derive_mask
 from recon.support import PlaneSettings, SupportPlane, aim_point, fit_support_plane, save_plane, scene_scale
 
 log = logging.getLogger(__name__)
@@ -222,6 +223,24 @@ def _em_loglik(em, x: np.ndarray) -> np.ndarray:
     ll = np.stack(ll, 1)
     top = ll.max(1, keepdims=True)
     return (top + np.log(np.exp(ll - top).sum(1, keepdims=True))).ravel()
+
+
+def unlit_pixels(rgb_linear: np.ndarray, settings: MaskSettings | None = None,
+                 max_fraction: float = 0.05) -> np.ndarray:
+    """(H, W) bool: the far background the flash hardly reaches, beyond the lit object and table:
+    pixels darker than the flash-falloff threshold of :func:`recon.masks.derive_mask` and than
+    ``max_fraction`` of the image's 90th percentile (a view filled by the lit table has no dark
+    mode, and its darker texture must not count); all False when no threshold is found."""
+    settings = MaskSettings() if settings is None else settings
+    img = np.nan_to_num(np.maximum(np.asarray(rgb_linear, np.float32)[:, :, :3], 0.0))
+    try:
+        _, info = derive_mask(img, settings)
+    except MaskError:
+        return np.zeros(img.shape[:2], bool)
+    lum = img @ LUMA
+    top = float(np.percentile(lum, 99.9))
+    t = min(info["threshold_log10"], float(np.log10(max(max_fraction * np.percentile(lum, 90), 1e-30))))
+    return np.log10(np.maximum(lum, settings.floor * top)) <= t
 
 
 def display_image(rgb_linear: np.ndarray) -> np.ndarray:
@@ -616,8 +635,11 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
     target = aim_point(cams)
     scale = scene_scale(cams, target)
     foot = plane.project(target)
-    liberal = [np.where(np.isfinite(c), _fill_small_holes(c > settings.carve_threshold, settings.max_hole_fraction),
-                        UNKNOWN).astype(np.uint8) for c in C]
+    # pixels the flash does not light (a far background) are never object, whatever C says
+    unlit = [unlit_pixels(im) for im in images]
+    liberal = [np.where(u, 0, np.where(np.isfinite(c), _fill_small_holes(c > settings.carve_threshold,
+                                                                         settings.max_hole_fraction), UNKNOWN))
+               .astype(np.uint8) for c, u in zip(C, unlit, strict=True)]
     band = parallax_band(cams, nbrs, foot, settings.band_parallax_px)
     hull = carve(liberal, cams, plane, foot, 0.6 * scale, 0.8 * scale, max(32, settings.hull_resolution // 2),
                  settings.carve_tolerance, seed_point=foot + 0.05 * scale * plane.normal, band=band)
@@ -645,6 +667,7 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
         active = _dilate(region, settings.hull_margin_px)
         c = np.where(np.isfinite(C[i]), C[i], settings.threshold)
         z = np.clip((c - settings.threshold) / settings.softness, -30, 30)
+        z = np.where(unlit[i], np.minimum(z, -4.0), z)
         # where the object stands low on the table the plane test sees no parallax: a table-like C
         # there says nothing; the colours of this view's sure object and sure table decide
         low = hull.project(cam, "band") & (z < 0)

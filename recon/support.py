@@ -119,7 +119,7 @@ class PlaneSettings:
     (the median distance from the cameras to the point they aim at)."""
 
     inlier_distance: float = 0.006  # a point within this of the plane lies on it
-    min_inlier_fraction: float = 0.2  # the plane holds at least this share of the points ...
+    min_inlier_fraction: float = 0.05  # the plane holds at least this share of the points ...
     min_inliers: int = 30  # ... and this many
     min_camera_elevation: float = 5.0  # degrees: every camera looks down on the plane by this much
     camera_fraction: float = 0.9  # ... or at least this share of them (a stray view or two)
@@ -177,6 +177,11 @@ def _refine(points: np.ndarray) -> tuple[np.ndarray, float]:
 def fit_support_plane(points: np.ndarray, cams: CameraSet,
                       settings: PlaneSettings = PlaneSettings()) -> tuple[SupportPlane | None, dict]:
     """The support plane in ``points (N, 3)`` seen by ``cams``, or None with the reason.
+
+    A plane is kept only when the cameras look down on it (``camera_fraction`` of them by
+    ``min_camera_elevation``), it holds ``min_inliers`` and ``min_inlier_fraction`` of the points
+    (SfM on small photos of a textured object finds most points on the object), the cameras aim
+    above it, and points stand on it near the aim point.
 
     Returns
     -------
