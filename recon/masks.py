@@ -32,6 +32,11 @@ clipping): such a photo holds sensor noise, not a flash-lit object (a black obje
 that did not fire), and a mask derived from noise would only mislead the later stages. EXR
 views are scene-referred in unknown units, so only the first test applies to them.
 
+An object standing on a table lit by the same flash is one bright component with the table:
+this method cannot separate them. With known cameras (``run_masks(..., cameras=...)``) the
+masks come from :mod:`recon.segment` instead, which finds the support plane and keeps the
+method here for captures without one.
+
 Masks feed the visual hull (:mod:`recon.init_mesh`), where a mask that is too small carves
 away object, so every step errs on the side of a slightly larger mask.
 """
@@ -231,6 +236,9 @@ def run_masks(
     settings: MaskSettings = MaskSettings(),
     given_dir: str | os.PathLike | None = None,
     stems: list[str] | None = None,
+    cameras: str | os.PathLike | None = None,
+    points: str | os.PathLike | None = None,
+    segment_settings=None,
 ) -> dict:
     """Write ``out_dir/<stem>.png`` for every view and ``out_dir/masks.json`` (per-view info).
 
@@ -241,11 +249,24 @@ def run_masks(
     given_dir : the capture's ``masks/`` folder, if any: ``<stem>.png`` found there is used
         unchanged (after a size check); views without one get a derived mask.
     stems : the views; default all ``<stem>.exr`` in ``linear_dir``.
+    cameras : a ``cameras.json`` of pinhole views ``linear_dir/<stem>.exr`` (the capture's own,
+        or the poses stage's with its ``undistorted/`` folder as ``linear_dir``): the masks
+        separate an object standing on a table from the table (:func:`recon.segment.run_tabletop_masks`,
+        which keeps this module's masks, with a note, when no support plane is found) and
+        ``out_dir/plane.json`` records the plane. ``stems`` is then the cameras' views.
+    points : with ``cameras``: sparse points in their frame (``poses/points.ply``) to find the
+        plane in; without, points are triangulated from the views.
+    segment_settings : with ``cameras``: a :class:`recon.segment.SegmentSettings`.
 
     Returns
     -------
     The summary written to ``masks.json``.
     """
+    if cameras is not None:
+        from recon.segment import SegmentSettings, run_tabletop_masks
+
+        return run_tabletop_masks(linear_dir, cameras, out_dir, segment_settings or SegmentSettings(),
+                                  points=points, given_dir=given_dir, mask_settings=settings)
     linear_dir = Path(linear_dir)
     stems = list(stems) if stems is not None else list_linear_stems(linear_dir)
     record = _linear_record(linear_dir)
@@ -287,6 +308,7 @@ def run_masks(
             views[stem] = info
             log.info("%s: %s mask, %.1f%% of the image", stem, info["source"], 100 * info["coverage"])
         summary = {
+            "method": "flash_falloff",
             "views": views,
             "settings": asdict(settings),
             "seconds": time.perf_counter() - t0,

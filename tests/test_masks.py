@@ -172,3 +172,19 @@ def test_run_masks_names_the_photo_without_an_object(scene, tmp_path):
     (lin / "linear.json").write_text(json.dumps(record))
     summary = rm.run_masks(lin, out)
     assert summary["views"]["b"]["coverage"] == pytest.approx(summary["views"]["a"]["coverage"])
+
+
+def test_run_masks_with_cameras_of_a_void_capture(scene, tmp_path):
+    """With cameras, a capture without a support plane keeps this module's masks (recon.segment
+    falls back to them); the summary says which method made them."""
+    from recon.segment import SegmentSettings
+
+    cams = scene["linear"].parent / "gt" / "cameras.json"
+    plain = rm.run_masks(scene["linear"], tmp_path / "plain")
+    assert plain["method"] == "flash_falloff"
+    with_cams = rm.run_masks(scene["linear"], tmp_path / "cams", cameras=cams,
+                             segment_settings=SegmentSettings(min_views=3))
+    assert with_cams["method"] == "flash_falloff" and not with_cams["plane"]["found"]
+    for stem in plain["views"]:
+        np.testing.assert_array_equal(read_mask(tmp_path / "plain" / f"{stem}.png"),
+                                      read_mask(tmp_path / "cams" / f"{stem}.png"))
