@@ -32,17 +32,70 @@ def get_image_stems(wildcards):
     return [Path(p).stem for p in get_images(wildcards)]
 
 
+def _sorted_keys(value):
+    """``value`` with every mapping's keys in sorted order (Snakemake compares params by repr)."""
+    if isinstance(value, dict):
+        return {key: _sorted_keys(value[key]) for key in sorted(value)}
+    if isinstance(value, list):
+        return [_sorted_keys(item) for item in value]
+    return value
+
+
 def get_settings(stage):
     """A params function: the effective settings of ``stage`` for the capture (no preset name,
-    no source paths: only a change of the values reruns the stage; the job's script reads the
-    same values with their sources through recon.config.job_settings)."""
+    no source paths, keys sorted: only a change of the values reruns the stage; the job's script
+    reads the same values with their sources through recon.config.job_settings)."""
 
     def settings(wildcards):
-        return rc.effective_settings(
-            stage, PRESET, capture_dir(wildcards.capture), PRESETS_DIR
+        return _sorted_keys(
+            rc.effective_settings(
+                stage, PRESET, capture_dir(wildcards.capture), PRESETS_DIR
+            )
         )
 
     return settings
+
+
+def get_preset(wildcards):
+    """The preset the capture runs with (its capture.yaml's, else the config's). Only the report
+    tracks it (it names the preset); other stages track the settings the preset gives them.
+    """
+    return rc.capture_preset(capture_dir(wildcards.capture), PRESET)
+
+
+# ---- What a rule tracks of the capture folder ----
+# profiles/default/config.yaml leaves out Snakemake's "input" rerun trigger, which compares the
+# inputs' full paths (so moving the captures folder reran every stage). A rule tracks instead the
+# names of its capture files relative to the capture (capture_files: adding, removing or renaming
+# one reruns it; editing one does through its date), and takes the capture's paths as untracked
+# params.
+def capture_files(get_inputs):
+    """A params function: the paths that the input function ``get_inputs`` gives inside the
+    capture folder, relative to it (files outside it, i.e. results, are left out)."""
+
+    def names(wildcards):
+        folder = capture_dir(wildcards.capture)
+        paths = get_inputs(wildcards)
+        paths = [paths] if isinstance(paths, str) else paths
+        return sorted(
+            Path(p).relative_to(folder).as_posix()
+            for p in paths
+            if p and Path(p).is_relative_to(folder)
+        )
+
+    return names
+
+
+def untracked(get_path):
+    """A params function giving ``get_path``'s value that Snakemake does not compare between runs:
+    a params function that takes ``input`` counts as derived from the inputs, whose changes are
+    tracked elsewhere (here: capture_files). For the capture's own paths, which change when the
+    captures folder moves while nothing in it does."""
+
+    def param(wildcards, input):
+        return get_path(wildcards)
+
+    return param
 
 
 def has_cameras(capture):

@@ -20,7 +20,8 @@ rule init_mesh:
         "../../envs/recon.yaml"
     params:
         masks_dir=get_view_masks_dir,
-        given=get_given_init_mesh,
+        given=untracked(get_given_init_mesh),
+        capture_files=capture_files(get_given_init_mesh),
         settings=get_settings("init_mesh"),
     script:
         "../scripts/init_mesh.py"

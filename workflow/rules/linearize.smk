@@ -16,7 +16,8 @@ rule linearize:
     conda:
         "../../envs/recon.yaml"
     params:
-        capture_dir=get_capture_dir,
+        capture_dir=untracked(get_capture_dir),
+        capture_files=capture_files(get_images),
         settings=get_settings("linearize"),
     script:
         "../scripts/linearize.py"

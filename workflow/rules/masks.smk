@@ -17,7 +17,8 @@ rule masks:
     conda:
         "../../envs/recon.yaml"
     params:
-        given_dir=get_given_masks_dir,
+        given_dir=untracked(get_given_masks_dir),
+        capture_files=capture_files(get_given_masks),
         stems=get_image_stems,
         settings=get_settings("masks"),
     script:

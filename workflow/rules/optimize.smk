@@ -1,7 +1,7 @@
 # Optimize (DESIGN section 2, issue 5): coarse-to-fine analysis by synthesis of the mesh and
 # the SVBRDF maps (recon.optimize). Every view of the cameras is used: the linear (or
 # undistorted) views, their masks and clipped-pixel masks come from the folders that
-# get_views_dir / get_view_masks_dir name (defined in poses.smk).
+# get_views_dir / get_view_masks_dir name (common.smk).
 # optimize/checkpoints/ is deliberately not an output: Snakemake leaves it in place when the
 # job is killed or fails, and a rerun (--rerun-incomplete) resumes from its last checkpoint.
 

@@ -22,7 +22,8 @@ rule poses:
     conda:
         "../../envs/recon.yaml"
     params:
-        given=get_given_cameras,
+        given=untracked(get_given_cameras),
+        capture_files=capture_files(get_given_cameras),
         settings=get_settings("poses"),
     script:
         "../scripts/poses.py"

@@ -28,7 +28,8 @@ rule report:
     conda:
         "../../envs/recon.yaml"
     params:
-        capture_dir=get_capture_dir,
+        capture_dir=untracked(get_capture_dir),
+        preset=get_preset,
         undistorted=f"{RESULTS}/{{capture}}/poses/undistorted",
         benchmarks=f"{RESULTS}/{{capture}}/benchmarks",
         settings=get_settings("report"),

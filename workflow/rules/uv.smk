@@ -15,6 +15,7 @@ rule uv:
     conda:
         "../../envs/recon.yaml"
     params:
+        capture_files=capture_files(get_init_mesh),
         settings=get_settings("uv"),
     script:
         "../scripts/uv.py"

@@ -18,5 +18,5 @@ make_report(
     settings=build_settings(ReportSettings, job_settings("report", snakemake)),  # noqa: F821
     gt_dir=Path(snakemake.params.capture_dir) / "gt",  # noqa: F821 (skipped when absent)
     benchmarks_dir=snakemake.params.benchmarks,  # noqa: F821
-    preset=job_settings("report", snakemake).get("_preset"),  # noqa: F821
+    preset=snakemake.params.preset,  # noqa: F821
 )
