@@ -186,8 +186,9 @@ def test_section_edit_reruns_that_stage_and_what_follows(repo_root, finished):
 
 
 def test_given_files_rerun_the_stages_that_read_them(repo_root, finished):
-    """Given cameras or a given initial mesh, dated before the results, still rerun their
-    stages: their names are tracked (the input trigger that compared paths is off)."""
+    """Given cameras, a given initial mesh or ground truth, dated before the results, still
+    rerun the stages that read them: their names are tracked (the input trigger that compared
+    paths is off)."""
     caps, res = finished
     cams = caps / "obj" / "cameras.json"
     cams.write_text("{}")
@@ -200,3 +201,10 @@ def test_given_files_rerun_the_stages_that_read_them(repo_root, finished):
     _age(mesh)
     # uv reads it in place of init_mesh's mesh (init_mesh leaves the DAG)
     assert _snakemake(repo_root, caps, res, "all") == set(CHAIN[CHAIN.index("uv"):])
+    mesh.unlink()
+    # ground truth, read by the report alone
+    gt = caps / "obj" / "gt" / "mesh.ply"
+    gt.parent.mkdir()
+    gt.write_text("ply\n")
+    _age(gt)
+    assert _snakemake(repo_root, caps, res, "all") == {"report"}

@@ -110,8 +110,14 @@ def has_masks(capture):
     return (capture_dir(capture) / "masks").is_dir()
 
 
-def has_gt(capture):
-    return (capture_dir(capture) / "gt").is_dir()
+def get_gt_files(wildcards):
+    """The files of the capture's gt/ folder (synthetic captures; only the report reads them)."""
+    folder = capture_dir(wildcards.capture) / "gt"
+    return (
+        sorted(str(p) for p in folder.iterdir() if p.is_file())
+        if folder.is_dir()
+        else []
+    )
 
 
 def get_capture_dir(wildcards):

@@ -2,7 +2,8 @@
 # and error maps, texture maps, loss curves, timings, the asset in model-viewer) and
 # report/metrics.json. recon.report.make_report replaces the whole report/ folder atomically,
 # so the log and the benchmark live outside it. Per-stage wall times are read from
-# results/<capture>/benchmarks/*.tsv; metrics against <capture>/gt/ when that folder exists.
+# results/<capture>/benchmarks/*.tsv; metrics against <capture>/gt/ when that folder exists
+# (its files are inputs: adding, removing or editing one reruns the report).
 # Each view's linear image is taken from poses/undistorted/ when the poses stage wrote one
 # there, else from linear/.
 
@@ -18,6 +19,7 @@ rule report:
         cameras=get_cameras,
         linear=f"{RESULTS}/{{capture}}/linear/linear.json",
         masks=f"{RESULTS}/{{capture}}/masks/masks.json",
+        gt=get_gt_files,
     output:
         html=f"{RESULTS}/{{capture}}/report/index.html",
         metrics=f"{RESULTS}/{{capture}}/report/metrics.json",
@@ -29,6 +31,7 @@ rule report:
         "../../envs/recon.yaml"
     params:
         capture_dir=untracked(get_capture_dir),
+        capture_files=capture_files(get_gt_files),
         preset=get_preset,
         undistorted=f"{RESULTS}/{{capture}}/poses/undistorted",
         benchmarks=f"{RESULTS}/{{capture}}/benchmarks",
