@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recon.io.dng import write_dng
+from recon.io.dng import GainMap, Opcode, write_dng, write_opcode_list
 from recon.io.images import read_exr, read_ldr, read_mask, write_exr
 from recon.linearize import (
     LinearizeError,
@@ -359,6 +359,97 @@ def test_all_black_capture_has_finite_previews(tmp_path):
     assert rec["preview_gain"] == 1.0
     prev, _ = read_ldr(tmp_path / "linear" / "preview" / "0.jpg")
     assert prev.max() <= 2 / 255
+
+
+# ---- DNG opcode lists: lens-shading GainMaps ----
+def _shading(u, v, strength):
+    """Gain that undoes a radial falloff 1 / (1 + strength r^2), r = 1 at the corners; (u, v)
+    relative image coordinates in [0, 1]."""
+    return 1.0 + strength * 2.0 * ((u - 0.5) ** 2 + (v - 0.5) ** 2)
+
+
+def _flat_field_with_falloff(sensor, strengths, t=1 / 100, iso=100, fn=2.0):
+    """A flat grey scene photographed through a lens whose falloff differs per colour: the
+    falloff is baked into the RAW counts from the analytic gain at each pixel centre."""
+    flat = np.full((H, W, 3), 0.45, np.float32)
+    cfa = sensor.capture(flat, t, iso, fn, noise=False).astype(np.float64)
+    rows, cols = np.mgrid[0:H, 0:W]
+    u, v = (cols + 0.5) / W, (rows + 0.5) / H
+    channel = sensor.mosaic(np.broadcast_to(np.arange(3.0), (H, W, 3)).copy()).astype(int)
+    gain = _shading(u, v, np.asarray(strengths)[channel])
+    raw = sensor.black_level + np.rint((cfa - sensor.black_level) / gain)
+    return flat, raw.astype(np.uint16)
+
+
+def _sampled_gain_maps(sensor, strengths, points=(25, 33)):
+    """The falloff's correction as a phone writes it: one GainMap per Bayer site (pitch 2),
+    its gains sampled from the analytic gain on a grid from edge to edge."""
+    pv, ph = points
+    v, u = np.meshgrid(np.linspace(0, 1, pv), np.linspace(0, 1, ph), indexing="ij")
+    cfa = sensor.cfa_indices()
+    return [GainMap(r, c, H, W, 0, 1, 2, 2, (1 / (pv - 1), 1 / (ph - 1)), (0.0, 0.0),
+                    _shading(u, v, strengths[cfa[r, c]]))
+            for r in (0, 1) for c in (0, 1)]
+
+
+def test_dng_gain_maps_flatten_lens_falloff(tmp_path, caplog):
+    """A flat field with a colour-dependent radial falloff (corners at 1/2 to 1/3 of the centre)
+    baked into the RAW data comes out flat when the DNG carries the correction: per-Bayer-site
+    GainMaps in OpcodeList2 (as phones write them), or one 3-plane GainMap in OpcodeList3 (after
+    demosaicing). An opcode the stage does not apply is named in a warning and in linear.json."""
+    sensor = SensorModel()
+    strengths = (1.0, 0.8, 1.3)  # R, G, B: a phone's colour shading
+    flat, raw = _flat_field_with_falloff(sensor, strengths)
+    images = tmp_path / "cap" / "images"
+    images.mkdir(parents=True)
+    write_dng(images / "list2.dng", raw, sensor, 1 / 100, 100, 2.0, opcode_list2=_sampled_gain_maps(sensor, strengths))
+    pv, ph = 25, 33
+    v, u = np.meshgrid(np.linspace(0, 1, pv), np.linspace(0, 1, ph), indexing="ij")
+    three = GainMap(0, 0, 0, 0, 0, 3, 1, 1, (1 / (pv - 1), 1 / (ph - 1)), (0.0, 0.0),
+                    np.stack([_shading(u, v, k) for k in strengths], axis=-1))
+    warp = Opcode(1, 0x01030000, 1, bytes(8))  # WarpRectilinear (optional): not applied
+    write_dng(images / "list3.dng", raw, sensor, 1 / 100, 100, 2.0, opcode_list3=[three, warp])
+    write_dng(images / "none.dng", raw, sensor, 1 / 100, 100, 2.0)
+    with caplog.at_level(logging.WARNING, logger="recon.linearize"):
+        rec = linearize_capture(tmp_path / "cap", tmp_path / "linear")
+    assert "list3.dng: DNG opcodes not applied: OpcodeList3: WarpRectilinear (optional)" in caplog.text
+    assert rec["images"]["list2"]["opcodes_applied"] == ["OpcodeList2: GainMap"] * 4
+    assert rec["images"]["list3"]["opcodes_applied"] == ["OpcodeList3: GainMap"]
+    assert rec["images"]["list3"]["opcodes_ignored"] == ["OpcodeList3: WarpRectilinear (optional)"]
+    assert rec["images"]["none"]["opcodes_applied"] == []
+    truth = flat * sensor.linear_scale(rec["exposure_reference"])
+    inner = (slice(2, -2), slice(2, -2))  # the demosaic's own border
+    for stem in ("list2", "list3"):
+        out = read_exr(tmp_path / "linear" / f"{stem}.exr")
+        err = np.abs(out[inner] / truth[inner] - 1.0)
+        # quantization of the darkened corners (about 500 DN) and the map's bilinear sampling
+        assert err.max() < 0.006, (stem, err.max())
+    # without the correction the corners are at about half of the centre
+    plain = read_exr(tmp_path / "linear" / "none.exr")
+    ratio = plain[2:6, 2:6].mean(axis=(0, 1)) / plain[30:34, 46:50].mean(axis=(0, 1))
+    assert np.all(ratio < 0.7) and ratio.mean() < 0.55, ratio
+    assert not read_mask(tmp_path / "linear" / "list2.sat.png").any()
+
+
+def test_dng_gain_map_clips_at_white_and_bad_lists_are_refused(tmp_path):
+    """A gain that lifts a sample above the white level clips there (the DNG SDK's rule) and the
+    pixel is marked clipped; an opcode list whose lengths do not add up names the file."""
+    sensor = SensorModel()
+    images = tmp_path / "cap" / "images"
+    images.mkdir(parents=True)
+    cfa = np.full((H, W), sensor.black_level + 3000, np.uint16)  # 78 % of white
+    double_left = GainMap(0, 0, H, W // 2, 0, 1, 1, 1, (1.0, 1.0), (0.0, 0.0), np.full((1, 1), 2.0))
+    write_dng(images / "a.dng", cfa, sensor, 1 / 100, 100, 2.0, opcode_list2=[double_left])
+    linearize_capture(tmp_path / "cap", tmp_path / "linear")
+    out = read_exr(tmp_path / "linear" / "a.exr")
+    sat = read_mask(tmp_path / "linear" / "a.sat.png")
+    assert sat[:, : W // 2 - 1].all() and not sat[:, W // 2 + 1 :].any()
+    left, right = out[4:-4, 4 : W // 2 - 4].mean(axis=(0, 1)), out[4:-4, W // 2 + 4 : -4].mean(axis=(0, 1))
+    np.testing.assert_allclose(left / right, 1.0 / (3000 / (sensor.white_level - sensor.black_level)), rtol=1e-3)
+    blob = bytearray(write_opcode_list([double_left]))
+    write_dng(images / "a.dng", cfa, sensor, 1 / 100, 100, 2.0, opcode_list2=bytes(blob[:12] + blob[16:]))
+    with pytest.raises(LinearizeError, match=r"a\.dng: its DNG OpcodeList2 cannot be parsed"):
+        linearize_capture(tmp_path / "cap", tmp_path / "linear2")
 
 
 # ---- JPEG / PNG / EXR ----

@@ -11,14 +11,24 @@ AsShotNeutral, exposure (ExposureTime, PhotographicSensitivity, FNumber), FocalL
 focal plane resolution (so the focal length in pixels can be recovered) and, optionally, a
 DefaultCrop and a LinearizationTable. The data are stored uncompressed, 12-bit sensors in packed
 12-bit samples and others in 16-bit samples (pidng's ``compress=True`` crashes on
-Python 3.11); rawpy reads them back bit-exact.
+Python 3.11); rawpy reads them back bit-exact. ``opcode_list2`` / ``opcode_list3`` add DNG
+opcode lists (lens-shading GainMaps, as phones write them).
+
+Opcode lists (DNG specification 1.6, chapter 7): :func:`read_opcode_list` parses an
+OpcodeList1/2/3 tag into :class:`Opcode` records (always big-endian), :func:`write_opcode_list`
+encodes them; :meth:`GainMap.from_opcode` / :meth:`GainMap.to_opcode` convert the GainMap
+opcode (ID 9) and :meth:`GainMap.gains` evaluates its bilinear interpolation at pixel centres
+exactly as the DNG SDK does (``dng_gain_map.cpp``). Applying the gains to an image is the
+linearize stage's job (:mod:`recon.linearize.opcodes`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
+import struct
 from fractions import Fraction
 from pathlib import Path
 
@@ -126,6 +136,199 @@ def read_tiff_tags(path: str | os.PathLike) -> tuple[dict, dict, dict]:
     return tags0, tags_raw, exif
 
 
+# ---- opcode lists (DNG specification 1.6, chapter 7) ----
+OPCODE_NAMES = {
+    1: "WarpRectilinear", 2: "WarpFisheye", 3: "FixVignetteRadial", 4: "FixBadPixelsConstant",
+    5: "FixBadPixelsList", 6: "TrimBounds", 7: "MapTable", 8: "MapPolynomial", 9: "GainMap",
+    10: "DeltaPerRow", 11: "DeltaPerColumn", 12: "ScalePerRow", 13: "ScalePerColumn", 14: "WarpRectilinear2",
+}
+"""DNG opcode IDs and their names (DNG specification 1.6, chapter 7)."""
+OPCODE_GAIN_MAP = 9
+OPCODE_FLAG_OPTIONAL = 1
+"""Flag bit: a reader that does not know the opcode may skip it."""
+OPCODE_FLAG_PREVIEW_SKIP = 2
+"""Flag bit: the opcode may be skipped for previews."""
+OPCODE_LIST_TAGS = ("OpcodeList1", "OpcodeList2", "OpcodeList3")
+"""Tag names, in processing order: OpcodeList1 on the raw data as stored, OpcodeList2 after
+linearization (LinearizationTable, black level, scaling to [0, 1]), OpcodeList3 after
+demosaicing."""
+_GAIN_MAP_HEADER = struct.Struct(">10I4dI")  # Top..ColPitch, MapPointsV/H, spacing, origin, MapPlanes
+
+
+@dataclasses.dataclass(frozen=True)
+class Opcode:
+    """One opcode of an opcode list: its ID, the DNG version it needs, its flags and its
+    parameter bytes (big-endian, as stored)."""
+
+    id: int
+    version: int
+    flags: int
+    params: bytes
+
+    @property
+    def name(self) -> str:
+        return OPCODE_NAMES.get(self.id, f"unknown opcode {self.id}")
+
+    @property
+    def optional(self) -> bool:
+        return bool(self.flags & OPCODE_FLAG_OPTIONAL)
+
+
+def read_opcode_list(data) -> list[Opcode]:
+    """Parse an OpcodeList1/2/3 tag value (bytes or a sequence of byte values).
+
+    Raises ValueError for a list whose length fields do not add up (a truncated or corrupt tag).
+    """
+    buf = bytes(bytearray(np.asarray(data, dtype=np.uint8).ravel())) if not isinstance(data, bytes) else data
+    if len(buf) < 4:
+        raise ValueError(f"opcode list of {len(buf)} bytes: too short for its count")
+    (count,) = struct.unpack_from(">I", buf, 0)
+    pos, ops = 4, []
+    for k in range(count):
+        if pos + 16 > len(buf):
+            raise ValueError(f"opcode list truncated in the header of opcode {k + 1} of {count}")
+        op_id, version, flags, size = struct.unpack_from(">4I", buf, pos)
+        pos += 16
+        if pos + size > len(buf):
+            raise ValueError(f"opcode list truncated in the parameters of opcode {k + 1} of {count} "
+                             f"({OPCODE_NAMES.get(op_id, op_id)}: {size} bytes announced)")
+        ops.append(Opcode(op_id, version, flags, buf[pos:pos + size]))
+        pos += size
+    return ops
+
+
+def write_opcode_list(opcodes) -> bytes:
+    """Encode opcodes (:class:`Opcode` or :class:`GainMap`) as an OpcodeList tag value."""
+    out = [struct.pack(">I", len(opcodes))]
+    for op in opcodes:
+        op = op.to_opcode() if isinstance(op, GainMap) else op
+        out.append(struct.pack(">4I", op.id, op.version, op.flags, len(op.params)) + op.params)
+    return b"".join(out)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class GainMap:
+    """The GainMap opcode (ID 9, DNG 1.3): a 2-D map of gains, bilinearly interpolated, that
+    multiplies the pixels of a rectangle (lens shading, colour shading).
+
+    Attributes
+    ----------
+    top, left, bottom, right : int
+        The rectangle (rows top..bottom-1, columns left..right-1) it applies to, in the
+        coordinates of the image at its stage; all 0 = the whole image.
+    plane, planes : int
+        The first image plane and the number of planes it applies to.
+    row_pitch, col_pitch : int
+        It applies to every ``row_pitch``-th row and ``col_pitch``-th column from ``top`` /
+        ``left`` (2 and 2 with a top/left offset address one colour of a Bayer pattern).
+    spacing : (float, float)
+        MapSpacingV, MapSpacingH: distance between map points in relative image coordinates
+        (0 = top/left edge, 1 = bottom/right edge of the whole image).
+    origin : (float, float)
+        MapOriginV, MapOriginH: relative position of the first map point.
+    gains : (MapPointsV, MapPointsH, MapPlanes) float32
+        Image plane ``plane + k`` uses map plane ``min(k + plane, MapPlanes - 1)`` as the SDK does.
+    version, flags : int
+        The opcode's DNG version and flags.
+    """
+
+    top: int
+    left: int
+    bottom: int
+    right: int
+    plane: int
+    planes: int
+    row_pitch: int
+    col_pitch: int
+    spacing: tuple[float, float]
+    origin: tuple[float, float]
+    gains: np.ndarray
+    version: int = 0x01030000
+    flags: int = 0
+
+    def __post_init__(self):
+        g = np.asarray(self.gains, dtype=np.float32)
+        if g.ndim == 2:
+            g = g[:, :, None]
+        if g.ndim != 3 or min(g.shape) < 1:
+            raise ValueError(f"GainMap gains must be (MapPointsV, MapPointsH, MapPlanes), got {g.shape}")
+        if not np.all(np.isfinite(g)):
+            raise ValueError("GainMap gains must be finite")
+        object.__setattr__(self, "gains", g)
+        spacing = [float(v) for v in self.spacing]
+        origin = [float(v) for v in self.origin]
+        for axis in (0, 1):  # a single map point: the SDK ignores spacing and origin
+            if g.shape[axis] == 1:
+                spacing[axis], origin[axis] = 1.0, 0.0
+        if min(spacing) <= 0 or not all(math.isfinite(v) for v in spacing + origin):
+            raise ValueError(f"GainMap spacing must be > 0 and origin finite, got {self.spacing}, {self.origin}")
+        object.__setattr__(self, "spacing", tuple(spacing))
+        object.__setattr__(self, "origin", tuple(origin))
+        if self.row_pitch < 1 or self.col_pitch < 1 or self.planes < 1:
+            raise ValueError(f"GainMap row/column pitch and planes must be >= 1, got {self.row_pitch}, "
+                             f"{self.col_pitch}, {self.planes}")
+        if self.bottom < self.top or self.right < self.left or min(self.top, self.left) < 0:
+            raise ValueError(f"GainMap area top {self.top}, left {self.left}, bottom {self.bottom}, "
+                             f"right {self.right} is not a rectangle")
+
+    @property
+    def points(self) -> tuple[int, int]:
+        return self.gains.shape[0], self.gains.shape[1]
+
+    @classmethod
+    def from_opcode(cls, op: Opcode) -> GainMap:
+        """The GainMap of an opcode with ID 9; ValueError when its parameters do not add up."""
+        if op.id != OPCODE_GAIN_MAP:
+            raise ValueError(f"opcode {op.name} is not a GainMap")
+        n = _GAIN_MAP_HEADER.size
+        if len(op.params) < n:
+            raise ValueError(f"GainMap parameters of {len(op.params)} bytes: shorter than its header ({n})")
+        (top, left, bottom, right, plane, planes, row_pitch, col_pitch, pv, ph, sv, sh, ov, oh,
+         map_planes) = _GAIN_MAP_HEADER.unpack_from(op.params, 0)
+        count = pv * ph * map_planes
+        if count < 1 or len(op.params) != n + 4 * count:
+            raise ValueError(f"GainMap of {pv} x {ph} points x {map_planes} planes needs {n + 4 * count} "
+                             f"parameter bytes, the opcode has {len(op.params)}")
+        gains = np.frombuffer(op.params, dtype=">f4", count=count, offset=n).astype(np.float32)
+        return cls(top, left, bottom, right, plane, planes, row_pitch, col_pitch, (sv, sh), (ov, oh),
+                   gains.reshape(pv, ph, map_planes), op.version, op.flags)
+
+    def to_opcode(self) -> Opcode:
+        pv, ph, mp = self.gains.shape
+        params = _GAIN_MAP_HEADER.pack(self.top, self.left, self.bottom, self.right, self.plane, self.planes,
+                                       self.row_pitch, self.col_pitch, pv, ph, *self.spacing, *self.origin, mp)
+        return Opcode(OPCODE_GAIN_MAP, self.version, self.flags, params + self.gains.astype(">f4").tobytes())
+
+    def area(self, height: int, width: int) -> tuple[slice, slice]:
+        """The rows and columns (slices with the pitches) it applies to in a ``height`` x ``width``
+        image, as the SDK's ``dng_area_spec::Overlap``; an all-zero rectangle covers the image."""
+        if self.top == self.left == self.bottom == self.right == 0:
+            top, left, bottom, right = 0, 0, height, width
+        else:
+            top, left, bottom, right = self.top, self.left, min(self.bottom, height), min(self.right, width)
+        return slice(top, max(top, bottom), self.row_pitch), slice(left, max(left, right), self.col_pitch)
+
+    def gains_at(self, rows: np.ndarray, cols: np.ndarray, height: int, width: int, map_plane: int = 0) -> np.ndarray:
+        """(len(rows), len(cols)) float32 gains of map plane ``map_plane`` at the centres of the
+        pixels ``rows`` x ``cols`` of a ``height`` x ``width`` image: relative position
+        ``(row + 0.5) / height`` (the same for columns), minus the origin, over the spacing gives
+        a map index, clamped to the map; bilinear between map points (dng_gain_map.cpp)."""
+        g = self.gains[:, :, min(map_plane, self.gains.shape[2] - 1)].astype(np.float64)
+
+        def index(pix, size, origin, spacing, points):
+            f = ((np.asarray(pix, dtype=np.float64) + 0.5) / size - origin) / spacing
+            f = np.clip(f, 0.0, points - 1)
+            i0 = np.minimum(np.floor(f).astype(np.int64), points - 1)
+            return i0, np.minimum(i0 + 1, points - 1), f - i0
+
+        r0, r1, fr = index(rows, height, self.origin[0], self.spacing[0], g.shape[0])
+        c0, c1, fc = index(cols, width, self.origin[1], self.spacing[1], g.shape[1])
+        fr = fr[:, None]
+        top = g[r0][:, c0] * (1 - fc) + g[r0][:, c1] * fc
+        bottom = g[r1][:, c0] * (1 - fc) + g[r1][:, c1] * fc
+        return (top * (1 - fr) + bottom * fr).astype(np.float32)
+
+
 # ---- writing ----
 def _rational(x: float, max_den: int = 1_000_000) -> list[int]:
     f = Fraction(float(x)).limit_denominator(max_den)
@@ -149,6 +352,8 @@ def write_dng(
     as_shot_neutral: np.ndarray | None = None,
     default_crop: tuple[int, int, int, int] | None = None,
     linearization_table: np.ndarray | None = None,
+    opcode_list2=None,
+    opcode_list3=None,
 ) -> Path:
     """Write a Bayer CFA image as an uncompressed DNG, atomically.
 
@@ -175,6 +380,9 @@ def write_dng(
         DNG DefaultCropOrigin / DefaultCropSize, in pixels.
     linearization_table : (N,) uint16, optional
         DNG LinearizationTable: the stored value v stands for ``table[v]``.
+    opcode_list2, opcode_list3 : sequence of Opcode or GainMap, or bytes, optional
+        DNG OpcodeList2 (applied to the linearized CFA data, e.g. per-colour lens-shading
+        GainMaps) and OpcodeList3 (applied after demosaicing).
 
     Returns
     -------
@@ -255,6 +463,12 @@ def write_dng(
         if int(cfa.max(initial=0)) >= len(table):
             raise ValueError(f"{path}: CFA values exceed the linearization table ({len(table)} entries)")
         t.set(Tag.LinearizationTable, [int(v) for v in table])
+
+    for tag, ops in (((51009, (7, 1)), opcode_list2), ((51022, (7, 1)), opcode_list3)):  # UNDEFINED
+        if ops is not None:
+            blob = ops if isinstance(ops, bytes) else write_opcode_list(list(ops))
+            read_opcode_list(blob)  # refuse what a reader could not parse
+            t.set(tag, list(blob))
 
     converter = RAW2DNG()
     converter.options(t, path="", compress=False)

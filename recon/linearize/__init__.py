@@ -22,7 +22,10 @@ RAW pipeline (DNG specification 1.6, chapter 6)
 -----------------------------------------------
 rawpy/LibRaw applies the LinearizationTable, subtracts the black level and demosaics in the
 camera's native space (no white balance, no colour conversion, linear 16-bit output scaled so
-the white level is 65535). The DNG DefaultCrop is then applied. The camera neutral (one for the
+the white level is 65535). GainMap opcodes (a phone's lens-shading correction) are applied
+where the DNG puts them: OpcodeList2 on the linear CFA values before demosaicing, OpcodeList3
+on the demosaiced camera RGB (:mod:`~recon.linearize.opcodes`); other opcodes are named in a
+warning and in ``linear.json``. The DNG DefaultCrop is then applied. The camera neutral (one for the
 whole capture: the median AsShotNeutral, or fixed multipliers) and the DNG colour tags
 (ColorMatrix1/2 interpolated by the white's colour temperature, CameraCalibration,
 AnalogBalance, ForwardMatrix when present) give camera -> XYZ; a Bradford adaptation takes the
@@ -34,8 +37,9 @@ Modules
 -------
 :mod:`~recon.linearize.settings` (:class:`LinearizeSettings`, :class:`LinearizeError`),
 :mod:`~recon.linearize.metadata` (what each photo's file says: exposure, focal length, the RAW
-colour tags, read through :mod:`recon.io.dng`), :mod:`~recon.linearize.color` (camera colour to
-Rec.709), :mod:`~recon.linearize.decode` (one photo's pixels), :mod:`~recon.linearize.stage`
+colour tags, read through :mod:`recon.io.dng`), :mod:`~recon.linearize.opcodes` (DNG opcode
+lists: GainMaps applied), :mod:`~recon.linearize.color` (camera colour to Rec.709),
+:mod:`~recon.linearize.decode` (one photo's pixels), :mod:`~recon.linearize.stage`
 (:func:`linearize_capture`: one white balance and one scale for the capture, the outputs).
 """
 

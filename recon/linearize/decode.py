@@ -2,8 +2,11 @@
 
 RAW (DNG specification 1.6, chapter 6): rawpy/LibRaw applies the LinearizationTable, subtracts
 the black level and demosaics in the camera's native space (no white balance, no colour
-conversion, linear 16-bit output scaled so the white level is 65535); the DNG DefaultCrop is
-then applied and the capture's camera -> Rec.709 matrix (:mod:`recon.linearize.color`) converts
+conversion, linear 16-bit output scaled so the white level is 65535). When the DNG carries
+GainMaps in OpcodeList2, the CFA is first mapped here to the DNG's linear reference values
+(``(raw - black) / (white - black)`` per CFA site, clipped to [0, 1]), multiplied by the gains
+and handed back to LibRaw as 16-bit data with black 0 and white 65535; OpcodeList3 GainMaps
+multiply the demosaiced camera RGB. The DNG DefaultCrop is then applied and the capture's camera -> Rec.709 matrix (:mod:`recon.linearize.color`) converts
 the colours. Clipped pixels are found on the RAW values before demosaicing: any sample in the
 pixel's neighbourhood at or above ``black + saturation_threshold * (white - black)``.
 JPEG/PNG: the sRGB decoding; a pixel with a channel at the largest code value is clipped.
@@ -16,6 +19,7 @@ import numpy as np
 
 from recon.io.images import ImageError, read_exr, read_ldr, srgb_to_linear
 from recon.linearize.metadata import View
+from recon.linearize.opcodes import apply_gain_maps
 from recon.linearize.settings import LinearizeError, LinearizeSettings
 
 
@@ -37,6 +41,14 @@ def _decode_raw(view: View, settings: LinearizeSettings) -> tuple[np.ndarray, np
                 white = min(white, float(view.linearization_table_max))
             if white <= black.max():
                 raise LinearizeError(f"{path}: white level {white} is not above the black level {black}")
+            clipped, levels16 = None, {}
+            if view.opcodes.stage2 and raw_visible.ndim == 2:
+                # OpcodeList2 GainMaps act on the linear reference values (DNG stage 2): map the
+                # CFA to [0, 1] here, apply them, and hand LibRaw the result as 16-bit data with
+                # black 0 and white 65535 (LibRaw applies no opcode itself)
+                stage2, clipped = _stage2(raw_visible, colors, black, white, view, settings)
+                raw.raw_image_visible[:] = np.rint(stage2 * 65535.0).astype(np.uint16)
+                levels16 = {"user_black": 0, "user_cblack": [0, 0, 0, 0], "user_sat": 65535}
             rgb16 = raw.postprocess(
                 demosaic_algorithm=getattr(rawpy.DemosaicAlgorithm, settings.demosaic.upper()),
                 output_color=rawpy.ColorSpace.raw,
@@ -51,6 +63,7 @@ def _decode_raw(view: View, settings: LinearizeSettings) -> tuple[np.ndarray, np
                 adjust_maximum_thr=0.0,
                 highlight_mode=rawpy.HighlightMode.Clip,
                 fbdd_noise_reduction=rawpy.FBDDNoiseReductionMode.Off,
+                **levels16,
             )
     except rawpy.LibRawError as e:
         raise LinearizeError(
@@ -63,7 +76,9 @@ def _decode_raw(view: View, settings: LinearizeSettings) -> tuple[np.ndarray, np
             f"{raw_visible.shape[:2]}; this RAW layout is not supported"
         )
     # clipped samples, on RAW values before demosaicing
-    if raw_visible.ndim == 3:  # LinearRaw: all channels per pixel
+    if clipped is not None:
+        pass  # found with the stage-2 values
+    elif raw_visible.ndim == 3:  # LinearRaw: all channels per pixel
         thr = black[: raw_visible.shape[2]] + settings.saturation_threshold * (white - black[: raw_visible.shape[2]])
         clipped = np.any(raw_visible >= thr, axis=2)
     else:
@@ -74,11 +89,20 @@ def _decode_raw(view: View, settings: LinearizeSettings) -> tuple[np.ndarray, np
 
         k = 2 * settings.saturation_radius + 1
         clipped = cv2.dilate(clipped.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
-    # LibRaw scales (raw - black) by 65535 / (its white level - black); rescale so that the
-    # effective white level (a LinearizationTable may end below WhiteLevel) is 1
-    libraw_white = float(libraw_white)
-    b = float(np.mean(black))
-    cam = rgb16.astype(np.float32) * np.float32((libraw_white - b) / (white - b) / 65535.0)
+    if levels16:  # the stage-2 data: black 0, white 65535
+        cam = rgb16.astype(np.float32) * np.float32(1.0 / 65535.0)
+    else:
+        # LibRaw scales (raw - black) by 65535 / (its white level - black); rescale so that the
+        # effective white level (a LinearizationTable may end below WhiteLevel) is 1
+        libraw_white = float(libraw_white)
+        b = float(np.mean(black))
+        cam = rgb16.astype(np.float32) * np.float32((libraw_white - b) / (white - b) / 65535.0)
+    if view.opcodes.stage2 and raw_visible.ndim == 3:
+        # LinearRaw: stage 2 has the three planes and no demosaicing follows; LibRaw clipped at 1
+        apply_gain_maps(cam, view.opcodes.stage2)
+        clipped |= np.any(cam >= settings.saturation_threshold, axis=2)
+    if view.opcodes.stage3:  # OpcodeList3: on the demosaiced camera RGB, before the DefaultCrop
+        apply_gain_maps(cam, view.opcodes.stage3)
     if view.default_crop is not None:
         x, y, w, h = view.default_crop
         H, W = cam.shape[:2]
@@ -90,6 +114,20 @@ def _decode_raw(view: View, settings: LinearizeSettings) -> tuple[np.ndarray, np
         clipped = clipped[y : y + h, x : x + w]
     levels = {"black_level": black.tolist(), "white_level": white}
     return np.ascontiguousarray(cam), clipped, levels
+
+
+def _stage2(raw_visible: np.ndarray, colors: np.ndarray, black: np.ndarray, white: float, view: View,
+            settings: LinearizeSettings) -> tuple[np.ndarray, np.ndarray]:
+    """The CFA as DNG linear reference values in [0, 1] with the OpcodeList2 GainMaps applied,
+    and the clipped samples: saturated on the sensor, or brought to the white level by a gain
+    (the SDK clips there)."""
+    black_px = black[np.clip(colors, 0, 3)].astype(np.float32)
+    x = (raw_visible.astype(np.float32) - black_px) / (np.float32(white) - black_px)
+    np.clip(x, 0.0, 1.0, out=x)
+    clipped = x >= settings.saturation_threshold
+    apply_gain_maps(x, view.opcodes.stage2)
+    clipped |= x >= settings.saturation_threshold
+    return x, clipped
 
 
 def _as_rgb(img: np.ndarray) -> np.ndarray:

@@ -33,6 +33,7 @@ from recon.io.images import (
     register_heif,
 )
 from recon.linearize.color import D65_XY, xy_to_xyz, xyz_to_camera
+from recon.linearize.opcodes import Opcodes, read_opcodes
 from recon.linearize.settings import LinearizeError
 
 log = logging.getLogger(__name__)
@@ -64,7 +65,7 @@ class View:
     default_crop: tuple | None = None  # (x, y, w, h)
     linearization_table_max: int | None = None
     baseline_exposure: float | None = None
-    opcode_lists: list = dataclasses.field(default_factory=list)
+    opcodes: Opcodes = dataclasses.field(default_factory=Opcodes)  # DNG opcode lists (RAW)
     make: str | None = None
     model: str | None = None
 
@@ -162,12 +163,7 @@ def _read_raw_meta(path: Path) -> View:
         if lt is not None:
             view.linearization_table_max = int(np.max(np.asarray(lt)))
         view.baseline_exposure = tag_number(tag_rationals(tag("BaselineExposure"), 1))
-        view.opcode_lists = [n for n in ("OpcodeList1", "OpcodeList2", "OpcodeList3") if tag(n) is not None]
-        if view.opcode_lists:
-            log.warning(
-                "%s: DNG %s not applied (lens shading GainMap / distortion opcodes are ignored)",
-                path, ", ".join(view.opcode_lists),
-            )
+        view.opcodes = read_opcodes(path, tag)
     else:
         cm = rgb_xyz[:3]
         if not np.any(cm):

@@ -95,6 +95,7 @@ def linearize_capture(
         (H), ``exposure_scale`` (H_ref / H), ``as_shot_neutral``, ``camera_to_rec709``
         (3 x 3, RAW), ``color_matrix`` (XYZ -> camera as used), ``calibration_illuminant``,
         ``black_level``, ``white_level``, ``default_crop``, ``linearization_table``,
+        ``opcodes_applied`` and ``opcodes_ignored`` (DNG opcode lists, "OpcodeListN: Name"),
         ``fraction_clipped``, ``focal_length_mm``, ``focal_length_35mm``, ``focal_length_px``
         and ``focal_length_source``.
     """
@@ -198,7 +199,8 @@ def linearize_capture(
                         "default_crop": list(view.default_crop) if view.default_crop else None,
                         "linearization_table": view.linearization_table_max is not None,
                         "baseline_exposure": view.baseline_exposure,
-                        "opcode_lists_ignored": view.opcode_lists,
+                        "opcodes_applied": view.opcodes.applied,
+                        "opcodes_ignored": view.opcodes.ignored,
                         "dng": view.is_dng,
                     }
                 )
