@@ -10,7 +10,7 @@ rule export:
         diffuse=f"{RESULTS}/{{capture}}/optimize/diffuse.exr",
         specular=f"{RESULTS}/{{capture}}/optimize/specular.exr",
         roughness=f"{RESULTS}/{{capture}}/optimize/roughness.exr",
-        cameras=get_cameras,
+        cameras=f"{RESULTS}/{{capture}}/optimize/cameras.json",
     output:
         glb=f"{RESULTS}/{{capture}}/export/asset.glb",
         usdz=f"{RESULTS}/{{capture}}/export/asset.usdz",
