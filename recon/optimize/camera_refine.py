@@ -21,6 +21,13 @@ moved together with all cameras leaves every image unchanged, so the pose correc
 :meth:`CameraRefinement.fix_gauge` projects the pose corrections onto the orthogonal
 complement of that null space (computed at the given cameras, to first order): the mean camera
 motion and the cameras' overall scale stay those of the input, and so does the object frame.
+Views aligned to a fixed scene (the held-out views after the optimization,
+:func:`recon.optimize.loop.align_heldout`) have no gauge: ``gauge=False``.
+
+Observability (``docs/camera_refine.md``): at ordinary fields of view a focal length error and
+the object scaled by the same factor give nearly the same images (perspective is the only cue),
+as do a small rotation and a sideways shift of one camera (parallax is the only cue); the
+refinement removes what the images see (the reprojection error) and its prior holds the rest.
 """
 
 from __future__ import annotations
@@ -254,7 +261,7 @@ class CameraRefinement(torch.nn.Module):
         ``object_size`` when given: ``center_shift_object``); the intrinsics scale and shift,
         and the first view's intrinsics before and after in the pixels of ``cameras`` (the
         same views at another image size, e.g. the photos'; default: the base cameras')."""
-        K, w2c = self.matrices(range(len(self.base)), self.base)
+        _, w2c = self.matrices(range(len(self.base)), self.base)
         ref = list(cameras) if cameras is not None else self.base
         if len(ref) != len(self.base):
             raise ValueError(f"corrections: {len(ref)} cameras for {len(self.base)} views")
