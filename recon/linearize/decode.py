@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from recon.io.images import ImageError, read_exr, read_ldr, srgb_to_linear
+from recon.io.images import ImageError, read_exr, read_ldr_codes, srgb_codes_to_linear
 from recon.linearize.metadata import View
 from recon.linearize.opcodes import apply_gain_maps
 from recon.linearize.settings import LinearizeError, LinearizeSettings
@@ -144,12 +144,12 @@ def decode_view(view: View, settings: LinearizeSettings, matrix: np.ndarray | No
         return rgb.reshape(cam.shape).astype(np.float32), clipped, levels
     if view.kind == "ldr":
         try:
-            img, bits = read_ldr(view.path)
+            codes, bits = read_ldr_codes(view.path)  # 8-bit codes: a quarter of the floats' memory
         except ImageError as e:
             raise LinearizeError(str(e)) from e
-        img = _as_rgb(img)
-        clipped = np.any(img >= 1.0, axis=2)
-        return srgb_to_linear(img), clipped, {"bits": bits}
+        codes = _as_rgb(codes)
+        clipped = np.any(codes == 2**bits - 1, axis=2)
+        return srgb_codes_to_linear(codes, bits), clipped, {"bits": bits}
     try:
         img = _as_rgb(read_exr(view.path))
     except ImageError as e:
