@@ -1,0 +1,107 @@
+"""recon.logs.stage: the log file ends with the error (after its traceback), the terminal shows the
+message without a Python traceback for a user error, with one for a bug (issue 21 item 5, issue 20
+item 4). Each case runs a real Python process, as a workflow script runs."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from recon.config import ConfigError
+from recon.logs import is_user_error, user_message
+
+SCRIPT = """
+import errno, logging, sys, time
+from recon.logs import stage
+from recon.config import ConfigError
+with stage(sys.argv[1]):
+    logging.getLogger("recon.test").info("working on it")
+    {body}
+print("not reached", flush=True)
+"""
+
+
+def _run(tmp_path, body, env=None):
+    log = tmp_path / "logs" / "export.log"
+    script = tmp_path / "script.py"
+    script.write_text(SCRIPT.format(body=body))
+    r = subprocess.run([sys.executable, str(script), str(log)], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, **(env or {})})
+    return r, log
+
+
+def test_user_error_message_alone_on_terminal_and_last_in_log(tmp_path):
+    r, log = _run(tmp_path, "raise ConfigError(\"/data/cap/capture.yaml: optimize.iterations must be positive, got -3\")")
+    assert r.returncode == 1
+    assert "not reached" not in r.stdout
+    assert "Traceback" not in r.stderr
+    assert "recon export: error: /data/cap/capture.yaml: optimize.iterations must be positive, got -3" in r.stderr
+    assert f"(log: {log})" in r.stderr
+    assert "working on it" in r.stderr  # the stage's own log lines still reach the terminal
+    text = log.read_text()
+    lines = text.rstrip("\n").splitlines()
+    assert lines[-1].endswith("ERROR recon.stage: export failed: /data/cap/capture.yaml: optimize.iterations "
+                              "must be positive, got -3")
+    assert "Traceback (most recent call last)" in text and "raise ConfigError" in text
+    assert "working on it" in text
+
+
+def test_traceback_on_terminal_when_asked(tmp_path):
+    r, _ = _run(tmp_path, "raise ConfigError('bad')", env={"RECON_TRACEBACK": "1"})
+    assert r.returncode == 1
+    assert "Traceback (most recent call last)" in r.stderr and "recon export: error: bad" in r.stderr
+
+
+def test_full_disk_is_a_user_error(tmp_path):
+    r, log = _run(tmp_path, "raise OSError(errno.ENOSPC, 'No space left on device', '/data/results/demo/export')")
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert "No space left on device: '/data/results/demo/export'" in r.stderr
+    assert "No space left on device: '/data/results/demo/export'" in log.read_text().splitlines()[-1]
+
+
+def test_bug_shows_traceback_and_says_so(tmp_path):
+    r, log = _run(tmp_path, "1 / 0")
+    assert r.returncode == 1
+    assert "Traceback (most recent call last)" in r.stderr
+    assert "recon export: error: ZeroDivisionError: division by zero" in r.stderr
+    assert "bug in recon" in r.stderr
+    assert log.read_text().splitlines()[-1].endswith("export failed: ZeroDivisionError: division by zero")
+
+
+def test_ctrl_c_exits_130_and_logs_it(tmp_path):
+    log = tmp_path / "logs" / "masks.log"
+    script = tmp_path / "script.py"
+    script.write_text(textwrap.dedent(SCRIPT.format(body="print('ready', flush=True); time.sleep(60)")))
+    p = subprocess.Popen([sys.executable, str(script), str(log)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    try:
+        assert p.stdout.readline().strip() == "ready"
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130
+    assert "Traceback" not in err and "recon masks: interrupted" in err
+    assert log.read_text().splitlines()[-1].endswith("masks interrupted")
+
+
+def test_classification():
+    assert is_user_error(ConfigError("x"))
+    assert is_user_error(FileNotFoundError(2, "No such file or directory", "/a/b.png"))
+    assert not is_user_error(ValueError("numpy said so"))
+    assert not is_user_error(KeyError("k"))
+    assert user_message(ConfigError("  names the file  ")) == "names the file"
+    assert user_message(KeyError("k")) == "KeyError: 'k'"
+
+
+@pytest.mark.parametrize("name", ["linearize", "masks", "poses", "init_mesh", "uv", "optimize", "export", "report"])
+def test_every_workflow_script_runs_its_stage_inside_recon_logs_stage(repo_root, name):
+    text = (repo_root / "workflow" / "scripts" / f"{name}.py").read_text()
+    assert "with stage(snakemake.log[0]):" in text
+    assert "configure(" not in text
