@@ -1,7 +1,9 @@
 # Helpers shared by every rule: capture discovery, settings, and input functions (get_*).
+import sys
 from pathlib import Path
 
 import recon.config as rc
+from recon.runlock import RunLockError, lock_results
 from recon.io.images import IMAGE_EXTENSIONS
 
 RESULTS = config["results"]
@@ -203,3 +205,13 @@ def get_init_mesh(wildcards):
 
 def get_given_init_mesh(wildcards):
     return get_init_mesh(wildcards) if has_init_mesh(wildcards.capture) else ""
+
+
+def lock_run():
+    """Take the results folder's run lock (recon.runlock) or stop, naming the run holding it
+    (the message alone: no traceback, nothing has started)."""
+    try:
+        lock_results(RESULTS)
+    except RunLockError as e:
+        sys.stderr.write(f"recon: {e}\n")
+        sys.exit(1)

@@ -12,9 +12,9 @@ rule export:
         roughness=f"{RESULTS}/{{capture}}/optimize/roughness.exr",
         cameras=get_cameras,
     output:
-        glb=f"{RESULTS}/{{capture}}/export/asset.glb",
-        usdz=f"{RESULTS}/{{capture}}/export/asset.usdz",
-        usda=f"{RESULTS}/{{capture}}/export/asset.usda",
+        glb=update(f"{RESULTS}/{{capture}}/export/asset.glb"),
+        usdz=update(f"{RESULTS}/{{capture}}/export/asset.usdz"),
+        usda=update(f"{RESULTS}/{{capture}}/export/asset.usda"),
     log:
         f"{RESULTS}/{{capture}}/logs/export.log",
     benchmark:

@@ -8,7 +8,7 @@ rule linearize:
     input:
         images=get_images,
     output:
-        meta=f"{RESULTS}/{{capture}}/linear/linear.json",
+        meta=update(f"{RESULTS}/{{capture}}/linear/linear.json"),
     log:
         f"{RESULTS}/{{capture}}/logs/linearize.log",
     benchmark:

@@ -13,12 +13,12 @@ rule optimize:
         cameras=get_cameras,
         mesh=f"{RESULTS}/{{capture}}/uv/mesh.obj",
     output:
-        mesh=f"{RESULTS}/{{capture}}/optimize/mesh.obj",
-        diffuse=f"{RESULTS}/{{capture}}/optimize/diffuse.exr",
-        specular=f"{RESULTS}/{{capture}}/optimize/specular.exr",
-        roughness=f"{RESULTS}/{{capture}}/optimize/roughness.exr",
-        log=f"{RESULTS}/{{capture}}/optimize/log.jsonl",
-        summary=f"{RESULTS}/{{capture}}/optimize/summary.json",
+        mesh=update(f"{RESULTS}/{{capture}}/optimize/mesh.obj"),
+        diffuse=update(f"{RESULTS}/{{capture}}/optimize/diffuse.exr"),
+        specular=update(f"{RESULTS}/{{capture}}/optimize/specular.exr"),
+        roughness=update(f"{RESULTS}/{{capture}}/optimize/roughness.exr"),
+        log=update(f"{RESULTS}/{{capture}}/optimize/log.jsonl"),
+        summary=update(f"{RESULTS}/{{capture}}/optimize/summary.json"),
     log:
         f"{RESULTS}/{{capture}}/logs/optimize.log",
     benchmark:

@@ -21,8 +21,8 @@ rule report:
         masks=f"{RESULTS}/{{capture}}/masks/masks.json",
         gt=get_gt_files,
     output:
-        html=f"{RESULTS}/{{capture}}/report/index.html",
-        metrics=f"{RESULTS}/{{capture}}/report/metrics.json",
+        html=update(f"{RESULTS}/{{capture}}/report/index.html"),
+        metrics=update(f"{RESULTS}/{{capture}}/report/metrics.json"),
     log:
         f"{RESULTS}/{{capture}}/logs/report.log",
     benchmark:

@@ -7,7 +7,7 @@ rule uv:
     input:
         mesh=get_init_mesh,
     output:
-        mesh=f"{RESULTS}/{{capture}}/uv/mesh.obj",
+        mesh=update(f"{RESULTS}/{{capture}}/uv/mesh.obj"),
     log:
         f"{RESULTS}/{{capture}}/logs/uv.log",
     benchmark:
