@@ -28,6 +28,7 @@ rule all:
         get_all_targets,
 
 
+include: "workflow/rules/check.smk"
 include: "workflow/rules/linearize.smk"
 include: "workflow/rules/masks.smk"
 include: "workflow/rules/poses.smk"

@@ -18,6 +18,7 @@ import copy
 import dataclasses
 import math
 import os
+import types
 import typing
 from pathlib import Path
 
@@ -165,19 +166,73 @@ def build_settings(cls: type[T], values: dict | None, source: str = "settings") 
             f"{where}: unknown {cls.__name__} key(s) {unknown}; valid keys: {', '.join(sorted(fields))}"
         )
     hints = typing.get_type_hints(cls)
+    signed = set(getattr(cls, "SIGNED_SETTINGS", ()))
     kwargs = {}
     for name, value in values.items():
         hint = hints.get(name)
+        problem = _type_problem(value, hint, name in signed)
+        if problem:
+            raise ConfigError(f"{where}: {cls.__name__} setting '{name}' {problem}, got {value!r}")
         origin = typing.get_origin(hint)
         if (hint is tuple or origin is tuple) and isinstance(value, list):
             value = tuple(tuple(v) if isinstance(v, list) else v for v in value)
-        elif hint is float and isinstance(value, int) and not isinstance(value, bool):
+        elif float in _hint_types(hint) and int not in _hint_types(hint) and _is_number(value):
             value = float(value)
+        elif int in _hint_types(hint) and float not in _hint_types(hint) and _is_number(value):
+            value = int(value)  # a whole number written as 4.0
         kwargs[name] = value
     try:
         return cls(**kwargs)
     except (TypeError, ValueError) as e:
         raise ConfigError(f"{where}: invalid {cls.__name__} ({e})") from e
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _hint_types(hint) -> tuple:
+    """The classes a field's type hint allows (``X | None`` -> (X, NoneType)); () when unknown."""
+    if hint is None:
+        return ()
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        return tuple(typing.get_origin(h) or h for h in typing.get_args(hint))
+    return (typing.get_origin(hint) or hint,)
+
+
+def _type_problem(value, hint, signed: bool = False) -> str | None:
+    """What is wrong with ``value`` for a field typed ``hint`` (None: nothing).
+
+    A YAML file can give any type: a string for a number, a number for a switch. Numbers
+    (int, float) must be finite and, unless the field is in the dataclass's
+    ``SIGNED_SETTINGS``, not negative (counts, sizes, rates and weights); an ``int`` field
+    takes whole numbers only, a ``bool`` field true/false only. Fields of other types are left
+    to the dataclass's own checks.
+    """
+    allowed = _hint_types(hint)
+    if not allowed or value is None and type(None) in allowed:
+        return None
+    numeric = [t for t in allowed if t in (int, float)]
+    if _is_number(value) and numeric:
+        if not math.isfinite(value):
+            return "must be a finite number"
+        if int in numeric and float not in numeric and value != int(value):
+            return "must be a whole number"
+        if value < 0 and not signed:
+            return "must not be negative"
+        return None
+    if isinstance(value, bool) and bool in allowed:
+        return None
+    if isinstance(value, str) and str in allowed:
+        return None
+    if isinstance(value, (list, tuple)) and (tuple in allowed or list in allowed):
+        return None
+    if not set(allowed) <= {int, float, bool, str, tuple, list, type(None)}:
+        return None  # a type this check does not know: the dataclass decides
+    names = {int: "a whole number", float: "a number", bool: "true or false", str: "a string",
+             tuple: "a list", list: "a list", type(None): "null"}
+    want = " or ".join(dict.fromkeys(names[t] for t in allowed))
+    return f"must be {want}"
 
 
 def check_results_location(results: str | os.PathLike, captures_root: str | os.PathLike) -> None:
