@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import logging
 import math
 import os
 import types
@@ -24,10 +25,13 @@ from pathlib import Path
 
 import yaml
 
+from recon.io.images import IMAGE_EXTENSIONS
+
 STAGES = ("linearize", "masks", "poses", "init_mesh", "uv", "optimize", "export", "report")
 PRESETS = ("draft", "balanced", "accurate")
 CAPTURE_KEYS = ("preset", "light_intensity") + STAGES
 DEFAULT_PRESETS_DIR = Path(__file__).resolve().parents[1] / "config" / "presets"
+_log = logging.getLogger(__name__)
 
 
 class ConfigError(ValueError):
@@ -262,6 +266,13 @@ def discover_captures(captures_root: str | os.PathLike) -> list[str]:
             "or pass --config captures=DIR"
         )
     names = sorted(p.name for p in root.iterdir() if (p / "images").is_dir())
+    for p in sorted(root.iterdir()):
+        if p.is_dir() and not p.name.startswith(".") and not (p / "images").is_dir():
+            photos = [q.name for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTENSIONS]
+            shown = ", ".join(sorted(photos)[:3]) + (", ..." if len(photos) > 3 else "")
+            hint = (f"; it holds {len(photos)} photo(s) ({shown}): move them into {p / 'images'}/ "
+                    "to make it a capture") if photos else ""
+            _log.warning("%s: no images/ folder, so it is not a capture and is skipped%s", p, hint)
     if not names:
         raise ConfigError(
             f"no capture folders in '{root}': each capture is a folder with an images/ folder "

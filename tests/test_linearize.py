@@ -706,3 +706,29 @@ def test_heic_photos_read_like_jpeg_with_their_exif(tmp_path):
     for k in ("0000", "0001"):
         np.testing.assert_allclose(read_exr(tmp_path / "lin_heic" / f"{k}.exr"),
                                    read_exr(tmp_path / "lin_png" / f"{k}.exr"), rtol=1e-5, atol=1e-6)
+
+
+def test_png_alpha_is_ignored_with_a_warning_naming_the_file(tmp_path, caplog):
+    """An RGBA (or gray + alpha) PNG: the colour is linearized as without alpha; a photo whose
+    alpha hides pixels is named in a warning that says how to use it as a mask (issue 21 item 9);
+    an opaque alpha says nothing."""
+    import cv2
+
+    images = tmp_path / "cap" / "images"
+    images.mkdir(parents=True)
+    rgb = np.clip(scene(0)[0] * 0.8, 0, 0.99)
+    q8 = np.round(_srgb_encode(rgb) * 255).astype(np.uint8)
+    alpha = np.full(rgb.shape[:2], 255, np.uint8)
+    cv2.imwrite(str(images / "opaque.png"), np.dstack([q8[:, :, ::-1], alpha]))
+    alpha[:, : rgb.shape[1] // 4] = 0  # a quarter transparent
+    cv2.imwrite(str(images / "cutout.png"), np.dstack([q8[:, :, ::-1], alpha]))
+    cv2.imwrite(str(images / "plain.png"), q8[:, :, ::-1])
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        linearize_capture(tmp_path / "cap", tmp_path / "linear")
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1, warnings
+    assert str(images / "cutout.png") in warnings[0] and "25.0% of the pixels transparent" in warnings[0]
+    assert "masks/cutout.png" in warnings[0]
+    plain = read_exr(tmp_path / "linear" / "plain.exr")
+    for k in ("opaque", "cutout"):
+        np.testing.assert_array_equal(read_exr(tmp_path / "linear" / f"{k}.exr"), plain)
