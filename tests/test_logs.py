@@ -5,11 +5,14 @@ item 4). Each case runs a real Python process, as a workflow script runs."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from recon.config import ConfigError
@@ -105,3 +108,28 @@ def test_every_workflow_script_runs_its_stage_inside_recon_logs_stage(repo_root,
     text = (repo_root / "workflow" / "scripts" / f"{name}.py").read_text()
     assert "with stage(snakemake.log[0]):" in text
     assert "configure(" not in text
+
+
+def test_a_failing_stage_in_a_real_run(repo_root, tmp_path):
+    """Snakemake's "check log file(s) for error details" now holds: the failed rule's log ends
+    with the message that names the file; the terminal shows the message, no traceback."""
+    from recon.io.images import write_png
+
+    for k in range(3):  # all-black photos: no object can be found in them
+        write_png(tmp_path / "caps" / "black" / "images" / f"{k:04d}.png", np.zeros((24, 32, 3)))
+    res = tmp_path / "results"
+    r = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "1", "--config",
+                        f"captures={tmp_path / 'caps'}", f"results={res}", "preset=draft", "--",
+                        f"{res}/black/masks/masks.json"], cwd=repo_root, capture_output=True, text=True,
+                       timeout=600, env={**os.environ, "PYTHONPATH": str(repo_root)})
+    text = r.stdout + r.stderr
+    assert r.returncode == 1, text[-3000:]
+    rule = re.search(r"^Error in rule (\w+):", text, re.M).group(1)
+    log = Path(re.search(r"^\s+log: (\S+) \(check log file\(s\) for error details\)", text, re.M).group(1))
+    assert log == res / "black" / "logs" / f"{rule}.log"
+    last = log.read_text().rstrip("\n").splitlines()[-1]
+    message = re.search(rf"ERROR recon\.stage: {rule} failed: (.+)$", last).group(1)
+    assert "0000.png" in message  # names the file
+    assert f"recon {rule}: error: {message}" in text and f"(log: {log})" in text
+    assert "Traceback" not in text
+    assert "Traceback (most recent call last)" in log.read_text()

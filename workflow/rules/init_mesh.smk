@@ -11,7 +11,7 @@ rule init_mesh:
         cameras=get_cameras,
         masks=get_view_masks,
     output:
-        mesh=update(f"{RESULTS}/{{capture}}/init_mesh/mesh.ply"),
+        mesh=f"{RESULTS}/{{capture}}/init_mesh/mesh.ply",
     log:
         f"{RESULTS}/{{capture}}/logs/init_mesh.log",
     benchmark:

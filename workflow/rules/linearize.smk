@@ -9,7 +9,7 @@ rule linearize:
         check=f"{RESULTS}/{{capture}}/check/check.json",
         images=get_images,
     output:
-        meta=update(f"{RESULTS}/{{capture}}/linear/linear.json"),
+        meta=f"{RESULTS}/{{capture}}/linear/linear.json",
     log:
         f"{RESULTS}/{{capture}}/logs/linearize.log",
     benchmark:

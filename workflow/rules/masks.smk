@@ -9,7 +9,7 @@ rule masks:
         linear=f"{RESULTS}/{{capture}}/linear/linear.json",
         given=get_given_masks,
     output:
-        summary=update(f"{RESULTS}/{{capture}}/masks/masks.json"),
+        summary=f"{RESULTS}/{{capture}}/masks/masks.json",
     log:
         f"{RESULTS}/{{capture}}/logs/masks.log",
     benchmark:

@@ -3,7 +3,9 @@
 # undistorted) views, their masks and clipped-pixel masks come from the folders that
 # get_views_dir / get_view_masks_dir name (common.smk).
 # optimize/checkpoints/ is deliberately not an output: Snakemake leaves it in place when the
-# job is killed or fails, and a rerun (--rerun-incomplete) resumes from its last checkpoint.
+# job is killed or fails, and the next run (the profile's rerun-incomplete) resumes from its
+# last checkpoint. Outputs flagged update(): the previous result (minutes of compute) stays in
+# place when the job starts, until the new files replace it.
 
 
 rule optimize:

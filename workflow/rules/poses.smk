@@ -13,8 +13,8 @@ rule poses:
         masks=f"{RESULTS}/{{capture}}/masks/masks.json",
         given=get_given_cameras_input,
     output:
-        cameras=update(f"{RESULTS}/{{capture}}/poses/cameras.json"),
-        diagnostics=update(f"{RESULTS}/{{capture}}/poses/poses.json"),
+        cameras=f"{RESULTS}/{{capture}}/poses/cameras.json",
+        diagnostics=f"{RESULTS}/{{capture}}/poses/poses.json",
     log:
         f"{RESULTS}/{{capture}}/logs/poses.log",
     benchmark:

@@ -6,6 +6,8 @@
 # (its files are inputs: adding, removing or editing one reruns the report).
 # Each view's linear image is taken from poses/undistorted/ when the poses stage wrote one
 # there, else from linear/.
+# Outputs flagged update(): the previous report stays in place until the new folder replaces it
+# (README "If a run is interrupted").
 
 
 rule report:

@@ -8,7 +8,7 @@ rule uv:
         check=f"{RESULTS}/{{capture}}/check/check.json",
         mesh=get_init_mesh,
     output:
-        mesh=update(f"{RESULTS}/{{capture}}/uv/mesh.obj"),
+        mesh=f"{RESULTS}/{{capture}}/uv/mesh.obj",
     log:
         f"{RESULTS}/{{capture}}/logs/uv.log",
     benchmark:
