@@ -149,7 +149,7 @@ def _check_settings(capture_dir: Path, preset: str, presets_dir, found: _Finding
 
 
 # ---- images/ ----
-def _check_images(capture_dir: Path, found: _Findings) -> dict[str, Path]:
+def _check_images(capture_dir: Path, found: _Findings) -> dict[str, Path] | None:
     hidden = hidden_files(capture_dir / "images")
     if hidden:
         found.warnings.append(f"{capture_dir / 'images'}: ignoring hidden file(s) {', '.join(hidden)} (not photos: "
@@ -158,13 +158,49 @@ def _check_images(capture_dir: Path, found: _Findings) -> dict[str, Path]:
         files = list_images(capture_dir)
     except ValueError as e:
         found.errors.append(str(e))
-        return {}
+        return None  # the checks against the photos would only repeat this error
     for p in files:
         try:
             read_meta(p)
         except ValueError as e:
             found.errors.append(str(e))
+    copies = identical_files(files)
+    if copies:
+        found.warnings.append("identical photos (byte for byte; a copy adds no view and SfM cannot place it): "
+                              + "; ".join(" = ".join(str(p) for p in group) for group in copies))
+        distinct = len(files) - sum(len(g) - 1 for g in copies)
+        if distinct < MIN_VIEWS:
+            found.errors.append(f"{capture_dir / 'images'}: {len(files)} photos but only {distinct} different one(s) "
+                                f"({', '.join(' = '.join(p.name for p in g) for g in copies)} are identical "
+                                f"copies); at least {MIN_VIEWS} views from different directions are needed")
     return {p.stem: p for p in files}
+
+
+def identical_files(paths: list[Path]) -> list[list[Path]]:
+    """Groups (of two or more) of byte-identical files among ``paths``: sizes first, then the
+    first 64 KiB, then the whole file, so that only likely copies are read in full."""
+    import hashlib
+
+    def digest(p: Path, limit: int | None) -> str:
+        h = hashlib.sha256()
+        with open(p, "rb") as f:
+            if limit is not None:
+                h.update(f.read(limit))
+            else:
+                for block in iter(lambda: f.read(1 << 20), b""):
+                    h.update(block)
+        return h.hexdigest()
+
+    groups: list[list[Path]] = [list(paths)]
+    for key in (lambda p: p.stat().st_size, lambda p: digest(p, 1 << 16), lambda p: digest(p, None)):
+        refined = []
+        for group in groups:
+            by: dict = {}
+            for p in group:
+                by.setdefault(key(p), []).append(p)
+            refined += [g for g in by.values() if len(g) > 1]
+        groups = refined
+    return sorted(sorted(g) for g in groups)
 
 
 def _sizes(images: dict[str, Path], stems, found: _Findings) -> dict[str, tuple[int, int]]:
@@ -374,8 +410,10 @@ def validate_capture(capture_dir: str | os.PathLike, preset: str = "balanced",
         raise CaptureError(f"{capture_dir}: capture folder not found")
     _check_settings(capture_dir, preset, presets_dir, found)
     images = _check_images(capture_dir, found)
+    listed = images is not None
+    images = images or {}
     cams = None
-    if (capture_dir / "cameras.json").is_file():
+    if listed and (capture_dir / "cameras.json").is_file():
         try:
             light = read_capture_yaml(capture_dir).get("light_intensity")
         except ConfigError:
@@ -385,7 +423,7 @@ def validate_capture(capture_dir: str | os.PathLike, preset: str = "balanced",
         found.errors.append(f"{capture_dir / 'images'}: {len(images)} photo(s), but at least {MIN_VIEWS} views are "
                             "needed (two views cannot constrain a mesh; SfM needs overlapping views); photograph the "
                             "object from more sides (a view every 10-15 degrees)")
-    masks = _check_masks(capture_dir, images, found)
+    masks = _check_masks(capture_dir, images, found) if listed else {}
     _check_init_mesh(capture_dir, cams, masks, found)
     for w in found.warnings:
         log.warning("%s", w)
