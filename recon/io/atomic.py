@@ -5,6 +5,11 @@ Every writer in ``recon`` goes through :func:`atomic_path` (one file) or
 temporary name and renamed into place only on success, so an error or a kill never leaves a
 half-written file that a later stage (or Snakemake) would mistake for a result.
 
+Before the rename the data are flushed to the disk (``fsync`` of every file written, then of the
+folder holding the new name), so that after a power loss the destination holds the previous
+result or the complete new one, never an empty or truncated file (a rename alone may reach the
+disk before the data it names).
+
 Temporary names carry the writing process's id (``.<name>.tmp-<pid>-<random>``). A process
 killed inside a block (kill -9, power loss) leaves its temporary behind; the next writer of the
 same destination removes every such leftover whose process no longer runs, so kills do not
@@ -38,6 +43,38 @@ def _running(pid: int) -> bool:
     except PermissionError:  # someone else's live process
         return True
     return True
+
+
+def _fsync(path: Path, directory: bool = False) -> None:
+    """Flush ``path`` (a file, or a folder's entries) to the disk; a file system that cannot
+    (some network or virtual ones refuse fsync on folders) is left as it is."""
+    try:
+        fd = os.open(path, (os.O_RDONLY | os.O_DIRECTORY) if directory else os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+_IN_TEMPORARY = re.compile(r"^\.(.+)\.tmp-(\d+)-")
+
+
+def _inside_temporary_folder(path: Path) -> bool:
+    """Whether ``path`` lies in an :func:`atomic_dir` temporary of this process, whose files are
+    flushed all together before that folder is renamed."""
+    pid = str(os.getpid())
+    return any((m := _IN_TEMPORARY.match(p.name)) and m.group(2) == pid for p in path.parents)
+
+
+def _fsync_tree(root: Path) -> None:
+    for folder, _dirs, files in os.walk(root):
+        for name in files:
+            _fsync(Path(folder) / name)
+        _fsync(Path(folder), directory=True)
 
 
 def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
@@ -87,7 +124,12 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None):
     os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; results are meant to be shared
     try:
         yield Path(tmp)
+        durable = not _inside_temporary_folder(path)
+        if durable:
+            _fsync(Path(tmp))
         os.replace(tmp, path)
+        if durable:
+            _fsync(path.parent, directory=True)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -108,11 +150,13 @@ def atomic_dir(path: str | os.PathLike):
     os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700
     try:
         yield tmp
+        _fsync_tree(tmp)
         old = None
         if path.exists():
             old = path.parent / f".{path.name}.old-{os.getpid()}"
             os.replace(path, old)
         os.replace(tmp, path)
+        _fsync(path.parent, directory=True)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
     except BaseException:

@@ -80,3 +80,42 @@ def test_temporaries_of_a_killed_writer_are_removed_by_the_next_one(tmp_path):
         t.write_text("new")
     assert sorted(p.name for p in tmp_path.iterdir()) == [alive.name, "file.txt", "stage"]
     assert (tmp_path / "stage" / "x").read_text() == "new"
+
+
+def test_data_reach_the_disk_before_the_rename(tmp_path, monkeypatch):
+    """fsync (the real one, counted) of every file and folder written, before the rename makes
+    them the result: after a power loss a destination is the old or the complete new data. Files
+    written inside an atomic_dir are flushed once, with their folder."""
+    import recon.io.atomic as atomic
+
+    synced, renamed = [], []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        synced.append(os.readlink(f"/proc/self/fd/{fd}"))
+        real_fsync(fd)
+
+    def replace(src, dst):
+        renamed.append((str(src), str(dst), len(synced)))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(atomic.os, "fsync", fsync)
+    monkeypatch.setattr(atomic.os, "replace", replace)
+    with atomic_path(tmp_path / "one.txt") as tmp:
+        tmp.write_text("data")
+    assert synced[0] == str(tmp) and renamed[0][2] == 1  # the file, then the rename
+    assert synced[1] == str(tmp_path)  # then the folder that holds the new name
+    synced.clear()
+    renamed.clear()
+    with atomic_dir(tmp_path / "stage") as tmp:
+        for k in range(3):
+            with atomic_path(tmp / f"{k}.txt") as f:
+                f.write_text(str(k))
+        (tmp / "sub").mkdir()
+        (tmp / "sub" / "x.txt").write_text("x")
+    files = [s for s in synced if s.endswith(".txt")]
+    assert sorted(os.path.basename(s) for s in files) == ["0.txt", "1.txt", "2.txt", "x.txt"]  # once each
+    final = renamed[-1]
+    assert final[1] == str(tmp_path / "stage") and final[2] == len(synced) - 1  # all before it
+    assert synced[-1] == str(tmp_path)
+    assert (tmp_path / "stage" / "sub" / "x.txt").read_text() == "x"
