@@ -10,8 +10,19 @@ RESULTS = config["results"]
 CAPTURES_ROOT = config["captures"]
 PRESET = config["preset"]
 PRESETS_DIR = str(Path(workflow.basedir) / "config" / "presets")
-CAPTURES = rc.discover_captures(CAPTURES_ROOT)
-rc.check_results_location(RESULTS, CAPTURES_ROOT)
+
+
+def stop(error):
+    """End the run before anything starts with a user error's message alone (no traceback)."""
+    sys.stderr.write(f"recon: error: {error}\n")
+    sys.exit(1)
+
+
+try:
+    CAPTURES = rc.discover_captures(CAPTURES_ROOT)
+    rc.check_results_location(RESULTS, CAPTURES_ROOT)
+except rc.ConfigError as e:
+    stop(e)
 
 
 wildcard_constraints:
@@ -228,5 +239,4 @@ def lock_run():
     try:
         lock_results(RESULTS)
     except RunLockError as e:
-        sys.stderr.write(f"recon: {e}\n")
-        sys.exit(1)
+        stop(e)
