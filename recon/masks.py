@@ -289,6 +289,9 @@ def run_masks(
                         f"{given_png}: mask is {mask.shape[1]}x{mask.shape[0]} but the image is "
                         f"{img.shape[1]}x{img.shape[0]}; give masks the size of the photos"
                     )
+                if not mask.any():  # (recon.validate refuses it first; this covers a later edit)
+                    raise MaskError(f"{given_png}: the mask is empty (every pixel 0), so it shows no object; draw "
+                                    "the object (nonzero pixels) or delete the file to let this stage derive it")
                 info = {"source": "given", "coverage": float(mask.mean())}
             else:
                 try:

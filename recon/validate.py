@@ -86,6 +86,7 @@ class _Findings:
     errors: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    sizes: dict = field(default_factory=dict)  # stem -> (width, height), or None: unreadable (reported once)
 
 
 def hidden_files(folder: str | os.PathLike) -> list[str]:
@@ -164,6 +165,7 @@ def _check_images(capture_dir: Path, found: _Findings) -> dict[str, Path] | None
             read_meta(p)
         except ValueError as e:
             found.errors.append(str(e))
+            found.sizes[p.stem] = None
     copies = identical_files(files)
     if copies:
         found.warnings.append("identical photos (byte for byte; a copy adds no view and SfM cannot place it): "
@@ -204,13 +206,14 @@ def identical_files(paths: list[Path]) -> list[list[Path]]:
 
 
 def _sizes(images: dict[str, Path], stems, found: _Findings) -> dict[str, tuple[int, int]]:
-    sizes = {}
     for s in sorted(stems):
-        try:
-            sizes[s] = image_size(images[s])
-        except ImageError as e:
-            found.errors.append(str(e))
-    return sizes
+        if s not in found.sizes:
+            try:
+                found.sizes[s] = image_size(images[s])
+            except ImageError as e:
+                found.errors.append(str(e))
+                found.sizes[s] = None
+    return {s: found.sizes[s] for s in stems if found.sizes[s] is not None}
 
 
 # ---- cameras.json ----
@@ -238,6 +241,7 @@ def _check_cameras(capture_dir: Path, images: dict[str, Path], light_intensity, 
             w, h = sizes[c.stem]
             found.errors.append(f"{path}: frames[{i}] ('{c.image}') is {c.width}x{c.height} but {images[c.stem]} is "
                                 f"{w}x{h}; the cameras must describe these photos at their size")
+    _check_convergence(path, cams, found)
     known = [s for s in seen if s in images]
     dropped = sorted(set(images) - set(seen))
     if dropped:
@@ -255,6 +259,27 @@ def _check_cameras(capture_dir: Path, images: dict[str, Path], light_intensity, 
                             f"{cams.light_intensity:g} and {capture_dir / 'capture.yaml'} light_intensity "
                             f"{float(light_intensity):g}; remove it from one of the two files (or make them agree)")
     return cams
+
+
+def _check_convergence(path: Path, cams: CameraSet, found: _Findings) -> None:
+    """The point nearest (least squares) to every camera's optical axis must lie in front of most
+    cameras: it does not for cameras in OpenGL's or Blender's axes (looking down -z). Skipped
+    when the axes are (nearly) parallel, e.g. a forward-facing capture."""
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for c in cams:
+        d = c.camera_to_world[:3, 2]  # OpenCV: +z is the viewing direction
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c.center
+    if len(cams) < 2 or np.linalg.cond(A) > 1e6:
+        return
+    p = np.linalg.solve(A, b)
+    behind = [c.stem for c in cams if (c.world_to_camera[:3, :3] @ p + c.world_to_camera[:3, 3])[2] <= 0]
+    if len(behind) > len(cams) / 2:
+        found.errors.append(f"{path}: the cameras' viewing directions meet behind {len(behind)} of the {len(cams)} "
+                            "cameras: are they in OpenGL's or Blender's axes (looking down -z, y up)? cameras.json "
+                            "uses OpenCV's (x right, y down, z forward; DESIGN section 1): flip the y and z rows "
+                            "of world_to_camera")
 
 
 # ---- masks/ ----

@@ -103,6 +103,14 @@ def _edit_cameras(edit: Callable[[dict], None]) -> Callable[[Path], None]:
     return apply
 
 
+def _opengl(data: dict) -> None:
+    """Cameras in OpenGL's axes (y up, looking down -z): OpenCV's y and z rows negated."""
+    for frame in data["frames"]:
+        w2c = np.array(frame["world_to_camera"])
+        w2c[1:3] *= -1
+        frame["world_to_camera"] = w2c.tolist()
+
+
 def _mesh(transform: Callable[[Mesh], Mesh]) -> Callable[[Path], None]:
     return lambda cap: write_ply(cap / "init_mesh.ply", transform(icosphere(3)))
 
@@ -227,6 +235,18 @@ CASES = [
          "images/0001", r"same name as .*0001\.(png|jpg); image stems must be unique"),
     Case("empty_images", lambda cap: [p.unlink() for p in (cap / "images").iterdir()], "images",
          r"images/ is empty"),
+    Case("zero_byte_photo", lambda cap: (cap / "images" / "0002.png").write_bytes(b""), "images/0002.png",
+         r"not a readable .png image"),
+    Case("fake_photo", lambda cap: (cap / "images" / "0002.png").write_text("not an image"), "images/0002.png",
+         r"not a readable .png image"),
+    Case("corrupt_mask", lambda cap: (cap / "masks" / "0001.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(30)),
+         "masks/0001.png", r"cannot decode the image"),
+    Case("camera_nan", _edit_cameras(lambda d: d["frames"][1]["K"][0].__setitem__(0, float("nan"))), "cameras.json",
+         r"frames\[1\]\.K: contains NaN or Inf"),
+    Case("camera_not_a_rotation", _edit_cameras(lambda d: d["frames"][3]["world_to_camera"][0].__setitem__(0, 3.0)),
+         "cameras.json", r"frames\[3\]\.world_to_camera: the 3x3 block is not a rotation"),
+    Case("cameras_opengl_axes", _edit_cameras(_opengl), "cameras.json",
+         r"viewing directions meet behind 8 of the 8 cameras: are they in OpenGL's", base={"init_mesh": False}),
     Case("same_photo_repeated", _repeat_photo(8), "images",
          r"8 photos but only 1 different one\(s\) \(0000.png = 0001.png = .* = 0007.png are identical",
          base={"cameras": False, "masks": False, "init_mesh": False}),

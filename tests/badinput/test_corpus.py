@@ -131,3 +131,16 @@ def test_unregistered_views_are_named(tmp_path):
     for k in range(5):
         assert re.search(rf"^  {k:04d}: .+", text, re.M), text
     assert not (tmp_path / "poses").exists()  # nothing partial
+
+
+def test_truncated_raw_is_refused_at_the_door(tmp_path):
+    """A truncated DNG of the demo: the linearize stage's own metadata check, run by the check."""
+    from badinput_cases import demo_capture
+
+    cap = demo_capture(tmp_path / "demo")
+    raw = cap / "images" / "0003.dng"
+    raw.write_bytes(raw.read_bytes()[: raw.stat().st_size // 2])
+    before = tree_hashes(cap)
+    with pytest.raises(CaptureError, match=r"corrupt or truncated RAW file") as e:
+        validate_capture(cap, "draft")
+    assert str(raw) in str(e.value) and tree_hashes(cap) == before
