@@ -166,6 +166,14 @@ def _check_images(capture_dir: Path, found: _Findings) -> dict[str, Path] | None
         except ValueError as e:
             found.errors.append(str(e))
             found.sizes[p.stem] = None
+    sizes = _sizes({p.stem: p for p in files}, [p.stem for p in files], found)
+    if len(set(sizes.values())) > 1:
+        first = next(p for p in files if p.stem in sizes)
+        odd = [p for p in files if p.stem in sizes and sizes[p.stem] != sizes[first.stem]]
+        w, h = sizes[first.stem]
+        found.errors.append(f"{odd[0]}: size {sizes[odd[0].stem][0]}x{sizes[odd[0].stem][1]} differs from "
+                            f"{first.name}'s ({w}x{h}){f' (and {len(odd) - 1} more)' if len(odd) > 1 else ''}; every "
+                            "view of a capture must come from the same camera at the same size")
     copies = identical_files(files)
     if copies:
         found.warnings.append("identical photos (byte for byte; a copy adds no view and SfM cannot place it): "
