@@ -19,6 +19,7 @@ import dataclasses
 import logging
 import math
 import os
+import re
 import types
 import typing
 from pathlib import Path
@@ -103,7 +104,8 @@ def stage_settings(
     """Merged settings dict of ``stage``: preset section updated by capture.yaml's section.
 
     The capture's own ``preset`` key, when present, replaces ``preset``. The result carries
-    ``_sources`` (the files it came from) for error messages; :func:`build_settings` drops it.
+    ``_sources`` (the files it came from) and ``_key_sources`` (the file each key of capture.yaml
+    came from) for error messages; :func:`build_settings` drops them.
     """
     if stage not in STAGES:
         raise ConfigError(f"unknown stage '{stage}'; stages are {', '.join(STAGES)}")
@@ -111,14 +113,18 @@ def stage_settings(
     preset = cap.get("preset", preset)
     merged = copy.deepcopy(load_preset(preset, presets_dir).get(stage) or {})
     sources = [str(Path(presets_dir or DEFAULT_PRESETS_DIR) / f"{preset}.yaml")]
+    key_sources = {}
     if stage in cap:
         merged.update(cap[stage])
         sources.append(str(Path(capture_dir) / "capture.yaml"))
+        key_sources = dict.fromkeys(cap[stage], str(Path(capture_dir) / "capture.yaml"))
     if stage == "poses" and "light_intensity" in cap:  # the one route of the light (module docstring)
         merged["light_intensity"] = cap["light_intensity"]
+        key_sources["light_intensity"] = str(Path(capture_dir) / "capture.yaml")
         if str(Path(capture_dir) / "capture.yaml") not in sources:
             sources.append(str(Path(capture_dir) / "capture.yaml"))
     merged["_sources"] = sources
+    merged["_key_sources"] = key_sources
     merged["_preset"] = preset
     return merged
 
@@ -161,13 +167,19 @@ def build_settings(cls: type[T], values: dict | None, source: str = "settings") 
     """
     values = dict(values or {})
     sources = values.pop("_sources", None)
+    key_sources = values.pop("_key_sources", None) or {}
     values.pop("_preset", None)
     where = " / ".join(sources) if sources else source
+
+    def where_is(*keys):  # the one file the keys came from, when that is known
+        files = {key_sources.get(k, sources[0] if sources else source) for k in keys}
+        return files.pop() if len(files) == 1 else where
+
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(values) - set(fields))
     if unknown:
         raise ConfigError(
-            f"{where}: unknown {cls.__name__} key(s) {unknown}; valid keys: {', '.join(sorted(fields))}"
+            f"{where_is(*unknown)}: unknown {cls.__name__} key(s) {unknown}; valid keys: {', '.join(sorted(fields))}"
         )
     hints = typing.get_type_hints(cls)
     signed = set(getattr(cls, "SIGNED_SETTINGS", ()))
@@ -176,7 +188,7 @@ def build_settings(cls: type[T], values: dict | None, source: str = "settings") 
         hint = hints.get(name)
         problem = _type_problem(value, hint, name in signed)
         if problem:
-            raise ConfigError(f"{where}: {cls.__name__} setting '{name}' {problem}, got {value!r}")
+            raise ConfigError(f"{where_is(name)}: {cls.__name__} setting '{name}' {problem}, got {value!r}")
         origin = typing.get_origin(hint)
         if (hint is tuple or origin is tuple) and isinstance(value, list):
             value = tuple(tuple(v) if isinstance(v, list) else v for v in value)
@@ -187,8 +199,9 @@ def build_settings(cls: type[T], values: dict | None, source: str = "settings") 
         kwargs[name] = value
     try:
         return cls(**kwargs)
-    except (TypeError, ValueError) as e:
-        raise ConfigError(f"{where}: invalid {cls.__name__} ({e})") from e
+    except (TypeError, ValueError) as e:  # the dataclass's own checks: name the file of the keys it names
+        named = [k for k in values if re.search(rf"\b{re.escape(k)}\b", str(e))]
+        raise ConfigError(f"{where_is(*named) if named else where}: invalid {cls.__name__} ({e})") from e
 
 
 def _is_number(value) -> bool:
