@@ -11,7 +11,8 @@ message; the terminal gets the message and the log's path, and the process exits
 A user error (:func:`is_user_error`: bad input, a bad setting, a full disk) shows no Python
 traceback on the terminal (``RECON_TRACEBACK=1`` shows it); any other exception is a bug in
 recon and shows its traceback there too. Ctrl-C exits with status 130 and "interrupted" in the
-log.
+log; SIGTERM (how Snakemake and batch systems stop a job) with status 143 and "terminated": both
+unwind the stage, so its temporary folder is removed and the previous result left in place.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
 import sys
 import traceback
 from pathlib import Path
@@ -76,6 +78,14 @@ def user_message(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
+class Terminated(BaseException):
+    """SIGTERM received: raised inside the stage so that it unwinds like Ctrl-C."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
+
+
 def _show_traceback() -> bool:
     return os.environ.get(TRACEBACK_ENV, "").strip().lower() not in ("", "0", "false", "no")
 
@@ -119,15 +129,19 @@ def stage(log_path: str | os.PathLike | None, name: str | None = None, level: in
     """
     stage_name = name or (Path(log_path).stem if log_path else "stage")
     configure(log_path, level)
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         yield
-    except KeyboardInterrupt:
-        log.error("%s interrupted", stage_name)
+    except (KeyboardInterrupt, Terminated) as exc:
+        what = "interrupted" if isinstance(exc, KeyboardInterrupt) else "terminated"
+        log.error("%s %s", stage_name, what)
         _flush()
-        sys.stderr.write(f"recon {stage_name}: interrupted\n")
-        raise SystemExit(130) from None
+        sys.stderr.write(f"recon {stage_name}: {what}\n")
+        raise SystemExit(130 if what == "interrupted" else 143) from None
     except SystemExit:
         raise
     except BaseException as exc:  # noqa: BLE001 (reported, then the process exits 1)
         report_failure(exc, stage_name, log_path)
         raise SystemExit(1) from None
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -133,3 +133,38 @@ def test_a_failing_stage_in_a_real_run(repo_root, tmp_path):
     assert f"recon {rule}: error: {message}" in text and f"(log: {log})" in text
     assert "Traceback" not in text
     assert "Traceback (most recent call last)" in log.read_text()
+
+
+def test_sigterm_unwinds_the_stage(tmp_path):
+    """SIGTERM (Snakemake stopping a job, a batch system's time limit) inside a stage writing its
+    folder: exit 143, 'terminated' last in the log, the temporary folder removed and the previous
+    result untouched."""
+    log = tmp_path / "logs" / "report.log"
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "index.html").write_text("previous")
+    script = tmp_path / "script.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys, time
+        from recon.io.atomic import atomic_dir
+        from recon.logs import stage
+        with stage(sys.argv[1]):
+            with atomic_dir({str(out)!r}) as tmp:
+                (tmp / "index.html").write_text("half")
+                print("ready", flush=True)
+                time.sleep(60)
+    """))
+    p = subprocess.Popen([sys.executable, str(script), str(log)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    try:
+        assert p.stdout.readline().strip() == "ready"
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 143
+    assert "recon report: terminated" in err and "Traceback" not in err
+    assert log.read_text().splitlines()[-1].endswith("report terminated")
+    assert (out / "index.html").read_text() == "previous"
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["logs", "report", "script.py"]

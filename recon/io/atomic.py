@@ -141,7 +141,9 @@ def atomic_dir(path: str | os.PathLike):
     """Yield a fresh temporary folder beside ``path``; it replaces ``path`` on success.
 
     On failure the temporary folder is removed and ``path`` is left as it was (absent, or the
-    previous complete result).
+    previous complete result). An existing ``path`` is swapped with the new folder in one system
+    call where Linux allows it (``renameat2`` with ``RENAME_EXCHANGE``), so no instant, and no
+    signal or kill, finds the destination missing; elsewhere two renames do it.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -151,14 +153,50 @@ def atomic_dir(path: str | os.PathLike):
     try:
         yield tmp
         _fsync_tree(tmp)
-        old = None
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if path.is_dir() and not path.is_symlink() and _exchange(tmp, path):
+        # one system call swapped the folders: ``path`` is the new result, ``tmp`` the old one
+        _fsync(path.parent, directory=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+        return
+    # no atomic exchange here (a file system without it, or nothing to replace): set the
+    # previous result aside, and put it back if the new one cannot take its place
+    old = None
+    try:
         if path.exists():
             old = path.parent / f".{path.name}.old-{os.getpid()}"
             os.replace(path, old)
         os.replace(tmp, path)
-        _fsync(path.parent, directory=True)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
     except BaseException:
+        if old is not None and not path.exists():
+            os.replace(old, path)
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    _fsync(path.parent, directory=True)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+_AT_FDCWD = -100
+_RENAME_EXCHANGE = 2
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the names ``a`` and ``b`` atomically (Linux renameat2 RENAME_EXCHANGE); False where
+    the system or the file system cannot."""
+    import ctypes
+    import errno
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    if renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOTSUP, errno.EPERM):
+        return False
+    raise OSError(err, os.strerror(err), str(b))

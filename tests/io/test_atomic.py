@@ -1,5 +1,6 @@
 import os
 import stat
+from pathlib import Path
 
 import pytest
 
@@ -119,3 +120,35 @@ def test_data_reach_the_disk_before_the_rename(tmp_path, monkeypatch):
     assert final[1] == str(tmp_path / "stage") and final[2] == len(synced) - 1  # all before it
     assert synced[-1] == str(tmp_path)
     assert (tmp_path / "stage" / "sub" / "x.txt").read_text() == "x"
+
+
+def test_existing_folder_is_swapped_in_one_step(tmp_path, monkeypatch):
+    """Replacing a stage folder: one renameat2(RENAME_EXCHANGE) where Linux allows it (no
+    os.replace, so no instant without the folder); else two renames, and the previous folder is
+    put back when the second fails."""
+    import recon.io.atomic as atomic
+
+    dest = tmp_path / "export"
+    dest.mkdir()
+    (dest / "asset.glb").write_text("old")
+    calls = []
+    real_replace = os.replace
+    monkeypatch.setattr(atomic.os, "replace", lambda a, b: (calls.append((a, b)), real_replace(a, b)))
+    with atomic_dir(dest) as tmp:
+        (tmp / "asset.glb").write_text("new")
+    assert (dest / "asset.glb").read_text() == "new" and calls == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["export"]
+
+    monkeypatch.setattr(atomic, "_exchange", lambda a, b: False)
+
+    def failing_replace(a, b):
+        if Path(a).name.startswith(".export.tmp-"):
+            raise OSError(28, "No space left on device", str(b))
+        real_replace(a, b)
+
+    monkeypatch.setattr(atomic.os, "replace", failing_replace)
+    with pytest.raises(OSError, match="No space"):
+        with atomic_dir(dest) as tmp:
+            (tmp / "asset.glb").write_text("newer")
+    assert (dest / "asset.glb").read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["export"]
