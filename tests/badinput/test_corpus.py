@@ -144,3 +144,22 @@ def test_truncated_raw_is_refused_at_the_door(tmp_path):
     with pytest.raises(CaptureError, match=r"corrupt or truncated RAW file") as e:
         validate_capture(cap, "draft")
     assert str(raw) in str(e.value) and tree_hashes(cap) == before
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene", ["void", "tabletop"])
+def test_synthetic_captures_pass(scene, tmp_path, repo_root):
+    """Captures from ``python -m recon synth`` (renders: about 0.5-3 min on 2 cores) are never
+    refused: with their cameras, and without (SfM)."""
+    import subprocess
+    import sys
+
+    cap = tmp_path / scene
+    r = subprocess.run([sys.executable, "-m", "recon", "synth", str(cap), "--scene", scene, "--views", "8",
+                        "--res", "64", "--spp", "4", "--cameras", "--masks"],
+                       cwd=repo_root, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    report = validate_capture(cap, "draft")
+    assert report["cameras"] == "given" and len(report["views"]) == 8 and report["warnings"] == []
+    (cap / "cameras.json").unlink()
+    assert validate_capture(cap, "draft")["cameras"] == "sfm"
