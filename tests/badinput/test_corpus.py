@@ -163,3 +163,19 @@ def test_synthetic_captures_pass(scene, tmp_path, repo_root):
     assert report["cameras"] == "given" and len(report["views"]) == 8 and report["warnings"] == []
     (cap / "cameras.json").unlink()
     assert validate_capture(cap, "draft")["cameras"] == "sfm"
+
+
+def test_exr_photos_are_sized_from_their_header(sphere):
+    """EXR photos (linear): sizes read from the header, checked against the masks and cameras."""
+    import numpy as np
+
+    from recon.io.images import read_ldr, srgb_to_linear, write_exr
+
+    for p in sorted((sphere / "images").iterdir()):
+        write_exr(p.with_suffix(".exr"), srgb_to_linear(read_ldr(p)[0]))
+        p.unlink()
+    assert len(validate_capture(sphere, "draft")["views"]) == 8
+    write_exr(sphere / "images" / "0003.exr", np.zeros((24, 32, 3), np.float32))
+    with pytest.raises(CaptureError) as e:
+        validate_capture(sphere, "draft")
+    assert "0003.exr: size 32x24 differs from 0000.exr's (64x48)" in str(e.value)
