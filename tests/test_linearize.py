@@ -655,7 +655,7 @@ def test_settings_validation_and_logging(tmp_path, caplog):
 # ---- the Snakemake rule and its adapter ----
 def test_linearize_rule(tmp_path, repo_root):
     captures, results = tmp_path / "captures", tmp_path / "results"
-    make_raw_capture(captures / "c1", EXPOSURES[:2])
+    make_raw_capture(captures / "c1", EXPOSURES[:3])  # 3 views: fewer are refused by the check step
     (captures / "c1" / "capture.yaml").write_text("linearize:\n  demosaic: LINEAR\n  saturation_threshold: 0.9\n")
     target = results / "c1" / "linear" / "linear.json"
     proc = subprocess.run(
@@ -666,7 +666,7 @@ def test_linearize_rule(tmp_path, repo_root):
     assert proc.returncode == 0, proc.stderr[-3000:]
     rec = json.loads(target.read_text())
     assert rec["settings"]["demosaic"] == "LINEAR" and rec["settings"]["saturation_threshold"] == 0.9
-    assert sorted(rec["images"]) == ["0000", "0001"]
+    assert sorted(rec["images"]) == ["0000", "0001", "0002"]
     for stem in rec["images"]:
         assert (target.parent / f"{stem}.exr").is_file() and (target.parent / "preview" / f"{stem}.jpg").is_file()
     assert "0001.dng" in (results / "c1" / "logs" / "linearize.log").read_text()
