@@ -287,7 +287,7 @@ def _check_convergence(path: Path, cams: CameraSet, found: _Findings) -> None:
         found.errors.append(f"{path}: the cameras' viewing directions meet behind {len(behind)} of the {len(cams)} "
                             "cameras: are they in OpenGL's or Blender's axes (looking down -z, y up)? cameras.json "
                             "uses OpenCV's (x right, y down, z forward; DESIGN section 1): flip the y and z rows "
-                            "of world_to_camera")
+                            "of world_to_camera (the object must be in front of the cameras)")
 
 
 # ---- masks/ ----
