@@ -12,7 +12,8 @@ signals.
   the same inputs gives the same result (a second run started meanwhile is refused and changes
   nothing), and an interrupted re-export keeps the deliverables.
 
-Slow (5 min 40 s on 2 shared cores): CI runs this file as its own step (.ci/run).
+Slow (5 min 40 s and 9 min 20 s on 2 cores shared with other work; 1 min 40 s of CPU): CI runs
+this file as its own step (.ci/run).
 """
 
 from __future__ import annotations
@@ -217,10 +218,10 @@ def test_uninterrupted_run_gives_the_same_result_and_a_second_run_is_refused(int
     # the same result as the run killed in optimize, export and report, within run-to-run noise:
     # multi-threaded float atomics in the renderer's backward pass make two runs differ in the
     # last bits, and remeshing then differs by a few faces (the single-threaded resume is
-    # bit-exact: tests/optimize/test_loop.py). Measured (2 cores): faces 6918/6936, chamfer
-    # 0.002290/0.002287, image rmse 0.1052/0.1057, diffuse rmse 0.1145/0.1151, render loss
-    # 0.02606/0.02604 (0.08-0.5%); two uninterrupted runs differ as much (commit 5263eb9). The
-    # bounds are about 10x that.
+    # bit-exact: tests/optimize/test_loop.py). Measured in two runs of this test (2 cores,
+    # resumed/uninterrupted): faces 6918/6936 and 6928/6950, chamfer 0.002290/0.002287 and
+    # 0.002322/0.002263, image rmse 0.1052/0.1057 and 0.1057/0.1056, diffuse rmse 0.1145/0.1151
+    # and 0.1141/0.1136, render loss 0.02606/0.02604 and 0.02585/0.02583 (0.07-2.5%).
     rel = {k: abs(again[k] - resumed[k]) / abs(resumed[k]) for k in resumed}
     (root / "numbers.json").write_text(json.dumps({"resumed": resumed, "uninterrupted": again, "rel": rel}))
     bounds = {"faces": 0.02, "chamfer": 0.1, "image_rmse": 0.05, "diffuse_rmse": 0.1, "loss_render": 0.05}
