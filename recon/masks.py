@@ -303,6 +303,9 @@ def run_masks(
             given_png = given / f"{stem}.png" if given is not None else None
             if given_png is not None and given_png.is_file():
                 mask = fit_given_mask(read_mask(given_png), given_png, img.shape[1::-1])
+                if not mask.any():  # (recon.validate refuses it first; this covers a later edit)
+                    raise MaskError(f"{given_png}: the mask is empty (every pixel 0), so it shows no object; draw "
+                                    "the object (nonzero pixels) or delete the file to let this stage derive it")
                 info = {"source": "given", "coverage": float(mask.mean())}
             else:
                 try:

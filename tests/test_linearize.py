@@ -694,7 +694,7 @@ def test_settings_validation_and_logging(tmp_path, caplog):
 # ---- the Snakemake rule and its adapter ----
 def test_linearize_rule(tmp_path, repo_root):
     captures, results = tmp_path / "captures", tmp_path / "results"
-    make_raw_capture(captures / "c1", EXPOSURES[:2])
+    make_raw_capture(captures / "c1", EXPOSURES[:3])  # 3 views: fewer are refused by the check step
     (captures / "c1" / "capture.yaml").write_text("linearize:\n  demosaic: LINEAR\n  saturation_threshold: 0.9\n")
     target = results / "c1" / "linear" / "linear.json"
     proc = subprocess.run(
@@ -705,7 +705,7 @@ def test_linearize_rule(tmp_path, repo_root):
     assert proc.returncode == 0, proc.stderr[-3000:]
     rec = json.loads(target.read_text())
     assert rec["settings"]["demosaic"] == "LINEAR" and rec["settings"]["saturation_threshold"] == 0.9
-    assert sorted(rec["images"]) == ["0000", "0001"]
+    assert sorted(rec["images"]) == ["0000", "0001", "0002"]
     for stem in rec["images"]:
         assert (target.parent / f"{stem}.exr").is_file() and (target.parent / "preview" / f"{stem}.jpg").is_file()
     assert "0001.dng" in (results / "c1" / "logs" / "linearize.log").read_text()
@@ -745,3 +745,29 @@ def test_heic_photos_read_like_jpeg_with_their_exif(tmp_path):
     for k in ("0000", "0001"):
         np.testing.assert_allclose(read_exr(tmp_path / "lin_heic" / f"{k}.exr"),
                                    read_exr(tmp_path / "lin_png" / f"{k}.exr"), rtol=1e-5, atol=1e-6)
+
+
+def test_png_alpha_is_ignored_with_a_warning_naming_the_file(tmp_path, caplog):
+    """An RGBA (or gray + alpha) PNG: the colour is linearized as without alpha; a photo whose
+    alpha hides pixels is named in a warning that says how to use it as a mask (issue 21 item 9);
+    an opaque alpha says nothing."""
+    import cv2
+
+    images = tmp_path / "cap" / "images"
+    images.mkdir(parents=True)
+    rgb = np.clip(scene(0)[0] * 0.8, 0, 0.99)
+    q8 = np.round(_srgb_encode(rgb) * 255).astype(np.uint8)
+    alpha = np.full(rgb.shape[:2], 255, np.uint8)
+    cv2.imwrite(str(images / "opaque.png"), np.dstack([q8[:, :, ::-1], alpha]))
+    alpha[:, : rgb.shape[1] // 4] = 0  # a quarter transparent
+    cv2.imwrite(str(images / "cutout.png"), np.dstack([q8[:, :, ::-1], alpha]))
+    cv2.imwrite(str(images / "plain.png"), q8[:, :, ::-1])
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        linearize_capture(tmp_path / "cap", tmp_path / "linear")
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1, warnings
+    assert str(images / "cutout.png") in warnings[0] and "25.0% of the pixels transparent" in warnings[0]
+    assert "masks/cutout.png" in warnings[0]
+    plain = read_exr(tmp_path / "linear" / "plain.exr")
+    for k in ("opaque", "cutout"):
+        np.testing.assert_array_equal(read_exr(tmp_path / "linear" / f"{k}.exr"), plain)

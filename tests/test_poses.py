@@ -461,6 +461,7 @@ def test_snakemake_skips_sfm_and_init_mesh_when_given(repo_root, tmp_path):
     res = tmp_path / "results"
     jobs = {name: _planned_jobs(repo_root, caps, res, f"{res}/{name}/uv/mesh.obj")
             for name in ("given", "cams_only", "sfm")}
-    assert jobs["given"] == {"uv"}
-    assert jobs["cams_only"] == {"linearize", "masks", "poses", "init_mesh", "uv"}
-    assert jobs["sfm"] == {"linearize", "masks", "poses", "init_mesh", "uv"}
+    # (check: the whole capture validated before any stage, recon.validate)
+    assert jobs["given"] == {"check", "uv"}
+    assert jobs["cams_only"] == {"check", "linearize", "masks", "poses", "init_mesh", "uv"}
+    assert jobs["sfm"] == {"check", "linearize", "masks", "poses", "init_mesh", "uv"}

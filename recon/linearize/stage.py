@@ -30,6 +30,9 @@ def list_images(capture_dir: str | os.PathLike) -> list[Path]:
             f"{folder}: no images/ folder; a capture holds its photos in images/ (DESIGN section 1)"
         )
     files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+    hidden = sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+    if hidden:  # .DS_Store, macOS ._* AppleDouble files: never photos
+        log.info("%s: ignoring hidden file(s) %s", folder, ", ".join(hidden))
     if not files:
         raise LinearizeError(f"{folder}: images/ is empty; put the capture's photos there")
     for p in files:
