@@ -110,6 +110,22 @@ def load_plane(path: str | os.PathLike) -> SupportPlane:
         raise PlaneError(f"{path}: not a plane file ({e}); it needs 'normal' (3 numbers) and 'offset'") from e
 
 
+def plane_if_found(path: str | os.PathLike | None) -> SupportPlane | None:
+    """The plane in ``path``, or None when ``path`` is None or names no file.
+
+    The masks stage (given cameras) and the poses stage (SfM) write ``plane.json`` beside their
+    masks only when they found a support plane; the later stages take its path and keep their
+    behaviour for an object in the void when it is absent. A file that is there but unreadable
+    is an error (:class:`PlaneError`).
+    """
+    if path is None or str(path) == "":
+        return None
+    path = Path(path)
+    if not path.is_file():
+        return None
+    return load_plane(path)
+
+
 # ---------------------------------------------------------------------------------------------
 # Finding the plane
 # ---------------------------------------------------------------------------------------------
