@@ -71,6 +71,14 @@ class SupportPlane:
         p = np.asarray(points, dtype=np.float64)
         return p - self.height(p)[..., None] * self.normal
 
+    def clamp_above(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``points (..., 3)`` with those below the plane moved along the normal onto it, and the
+        (...,) bool array of the moved ones (a projection onto the half-space above)."""
+        p = np.asarray(points, dtype=np.float64)
+        h = self.height(p)
+        below = h < 0
+        return p - np.minimum(h, 0.0)[..., None] * self.normal, below
+
     def ray_hit(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """Ray parameter t of ``origins + t * directions`` on the plane (inf where parallel)."""
         o = np.asarray(origins, dtype=np.float64)
