@@ -22,6 +22,8 @@ from recon.poses.inputs import focal_prior, image_names, linear_stems, read_mask
 from recon.poses.mapping import map_views, refine, rescale_model, silhouette_consistency, unregistered_reasons
 from recon.poses.settings import PoseError, PoseSettings
 from recon.poses.undistort import pinhole_camera, undistort_maps, undistort_view
+from recon.segment import read_points_ply, run_tabletop_masks
+from recon.support import fit_support_plane
 
 log = logging.getLogger(__name__)
 
@@ -253,6 +255,10 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
              "note": "x_object = scale * rotation @ x_colmap + translation; sparse/ is in COLMAP's frame"}
     (tmp / "frame.json").write_text(json.dumps(frame, indent=1))
 
+    t0 = time.perf_counter()
+    support = _support_plane_masks(tmp, masks_dir)
+    timings["support_plane_s"] = time.perf_counter() - t0
+
     mre = float(rec.compute_mean_reprojection_error())
     sil = silhouette_consistency(rec, masks)
     if sil is not None and sil < settings.min_silhouette_consistency:
@@ -282,6 +288,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
         "chosen_trial": trial,
         "refinement": refinement,
         "frame": frame,
+        "support_plane": support,
         "light_intensity": light_intensity,
         "timings": timings,
         "settings": asdict(settings),
@@ -290,6 +297,38 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
              len(registered), n, mre, rec.num_points3D(), in_mask.sum(),
              ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))
     return diag
+
+
+def _support_plane_masks(tmp: Path, masks_dir: Path | None) -> dict:
+    """An object standing on a table (issue 15): when the SfM points hold a support plane
+    (:func:`recon.support.fit_support_plane`), the masks in ``undistorted/masks`` are replaced by
+    the tabletop masks (:func:`recon.segment.run_tabletop_masks` on the undistorted views, the
+    capture's own masks still winning) and ``plane.json`` is written beside ``cameras.json``;
+    otherwise (an object in the void) the masks stage's masks stay, with a note in the log."""
+    cams = load_cameras(tmp / "cameras.json")
+    plane, info = fit_support_plane(read_points_ply(tmp / "points.ply"), cams)
+    if plane is None:
+        log.info("no support plane in the SfM points (%s): the masks stage's masks are kept", info["reason"])
+        return {k: v for k, v in info.items() if k in ("found", "reason")}
+    given = None
+    if masks_dir is not None and (masks_dir / "masks.json").is_file():
+        views = json.loads((masks_dir / "masks.json").read_text()).get("views", {})
+        given = {s for s, v in views.items() if v.get("source") == "given"}
+    und_masks = tmp / "undistorted" / "masks"
+    summary = run_tabletop_masks(tmp / "undistorted", tmp / "cameras.json", tmp / "tabletop",
+                                 points=tmp / "points.ply", given_dir=und_masks if und_masks.is_dir() else None,
+                                 given_stems=given or set())
+    if not (tmp / "tabletop" / "plane.json").is_file():  # the same points, the same plane: not expected
+        shutil.rmtree(tmp / "tabletop")
+        return {"found": False, "reason": summary["plane"].get("reason")}
+    und_masks.mkdir(parents=True, exist_ok=True)
+    for c in cams:
+        os.replace(tmp / "tabletop" / f"{c.stem}.png", und_masks / f"{c.stem}.png")
+    os.replace(tmp / "tabletop" / "plane.json", tmp / "plane.json")
+    os.replace(tmp / "tabletop" / "masks.json", tmp / "masks.json")
+    shutil.rmtree(tmp / "tabletop")
+    log.info("support plane found in the SfM points: tabletop masks in undistorted/masks, plane.json written")
+    return {k: v for k, v in summary["plane"].items() if not isinstance(v, (list, dict)) or k == "camera_elevation_deg"}
 
 
 def _write_points(path: Path, xyz: np.ndarray, flag: np.ndarray) -> None:

@@ -11,6 +11,7 @@ rule export:
         specular=f"{RESULTS}/{{capture}}/optimize/specular.exr",
         roughness=f"{RESULTS}/{{capture}}/optimize/roughness.exr",
         cameras=get_cameras,
+        masks=get_view_masks,
     output:
         glb=f"{RESULTS}/{{capture}}/export/asset.glb",
         usdz=f"{RESULTS}/{{capture}}/export/asset.usdz",
@@ -22,6 +23,7 @@ rule export:
     conda:
         "../../envs/recon.yaml"
     params:
+        plane=get_plane,
         settings=get_settings("export"),
     script:
         "../scripts/export.py"

@@ -15,4 +15,5 @@ export_asset(
     Path(snakemake.output.glb).parent,  # noqa: F821
     build_settings(ExportSettings, job_settings("export", snakemake)),  # noqa: F821
     cameras_json=snakemake.input.cameras,  # noqa: F821
+    plane_json=snakemake.params.plane,  # noqa: F821
 )

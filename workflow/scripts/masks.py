@@ -13,4 +13,5 @@ run_masks(
     build_settings(MaskSettings, job_settings("masks", snakemake)),  # noqa: F821
     given_dir=snakemake.params.given_dir or None,  # noqa: F821
     stems=list(snakemake.params.stems),  # noqa: F821
+    cameras=snakemake.params.cameras or None,  # noqa: F821
 )

@@ -14,4 +14,5 @@ optimize_from_dirs(
     snakemake.input.mesh,  # noqa: F821
     Path(snakemake.output.mesh).parent,  # noqa: F821
     settings_from_dict(job_settings("optimize", snakemake)),  # noqa: F821
+    plane_json=snakemake.params.plane,  # noqa: F821
 )
