@@ -36,6 +36,7 @@ from recon.io.atomic import atomic_dir
 from recon.io.cameras import load_cameras
 from recon.io.images import ImageError, linear_to_srgb, read_texture_map, write_png
 from recon.io.mesh import Mesh, MeshError, read_obj
+from recon.marker import MarkerBoard, MarkerError, marker_scale_from_dirs
 from recon.support import PlaneError, plane_if_found
 
 log = logging.getLogger(__name__)
@@ -78,7 +79,10 @@ class ExportSettings:
         A known length: the object's height in metres (0 = not known). With a support plane, the
         height of the mesh above the plane; without, its extent along the up axis. It sets the
         scale (and wins over ``meters_per_unit``; a scale measured from a marker mat in the
-        plane file wins over both).
+        mat wins over both).
+    marker_square_m : float
+        The side of a square of the ChArUco mat in the photos, in metres (0 = no mat): the scale
+        comes from the mat (:mod:`recon.marker`; the board OpenCV's 5 x 7 ChArUco, DICT_4X4_50).
 
     An object standing on a table (``plane.json``, :mod:`recon.support`): whatever ``up`` says,
     the plane's normal becomes +Y, the plane y = 0 (the object's base stands on the ground)
@@ -89,6 +93,7 @@ class ExportSettings:
     min_up_agreement: float = 0.5
     meters_per_unit: float = 1.0
     object_height_m: float = 0.0
+    marker_square_m: float = 0.0
 
     def __post_init__(self):
         if self.up not in ("cameras", "identity"):
@@ -97,6 +102,9 @@ class ExportSettings:
             raise ValueError(f"min_up_agreement must be in [0, 1], got {self.min_up_agreement}")
         if not (math.isfinite(self.meters_per_unit) and self.meters_per_unit > 0):
             raise ValueError(f"meters_per_unit must be a positive number, got {self.meters_per_unit}")
+        if not (math.isfinite(self.marker_square_m) and self.marker_square_m >= 0):
+            raise ValueError(f"marker_square_m must be a length in metres >= 0 (0: no mat), got "
+                             f"{self.marker_square_m}")
         if not (math.isfinite(self.object_height_m) and self.object_height_m >= 0):
             raise ValueError(f"object_height_m must be a length in metres >= 0 (0: unknown), got "
                              f"{self.object_height_m}")
@@ -300,6 +308,7 @@ def export_asset(
     settings: ExportSettings = ExportSettings(),
     cameras_json: str | os.PathLike | None = None,
     plane_json: str | os.PathLike | None = None,
+    views_dir: str | os.PathLike | None = None,
 ) -> dict[str, Path]:
     """Write ``out_dir/asset.glb``, ``asset.usdz``, ``asset.usda`` and the PNG textures.
 
@@ -319,6 +328,9 @@ def export_asset(
     plane_json
         The support plane (``plane.json`` beside the masks; absent when none was found): the
         asset stands on it (:func:`object_to_world`).
+    views_dir
+        The pinhole views of ``cameras_json`` (``<stem>.exr``), where ``settings.marker_square_m``
+        asks for the scale of a marker mat in them.
 
     Returns
     -------
@@ -330,7 +342,18 @@ def export_asset(
     except PlaneError as e:
         raise ExportError(f"{e}; rerun the masks stage") from e
     how: dict = {}
-    T = object_to_world(settings, cameras_json, plane, mesh, how)
+    marker = None
+    if settings.marker_square_m > 0:
+        if views_dir is None or cameras_json is None:
+            raise ExportError("export.marker_square_m is set but the export stage was given no views and cameras "
+                              "to find the mat in")
+        try:
+            marker, marker_info = marker_scale_from_dirs(views_dir, cameras_json,
+                                                         MarkerBoard(settings.marker_square_m))
+        except MarkerError as e:
+            raise ExportError(f"{views_dir}: {e}") from e
+        how["marker"] = marker_info
+    T = object_to_world(settings, cameras_json, plane, mesh, how, marker_scale=marker)
     if "scale_warning" in how:
         log.warning("%s: %s", how["scale_warning"], how["scale_source"])
     extras = {
@@ -340,6 +363,7 @@ def export_asset(
         "placement": how["frame"],
         "meters_per_unit": how["meters_per_unit"],
         "scale_source": how["scale_source"],
+        **({"marker_mat": how["marker"]} if "marker" in how else {}),
     }
     out_dir = Path(out_dir)
     log.info("exporting %s (%d faces, maps %s / %s / %s) to %s", mesh_obj, len(mesh.t_pos_idx),

@@ -12,6 +12,7 @@ rule export:
         roughness=f"{RESULTS}/{{capture}}/optimize/roughness.exr",
         cameras=get_cameras,
         masks=get_view_masks,
+        views=get_views,
     output:
         glb=f"{RESULTS}/{{capture}}/export/asset.glb",
         usdz=f"{RESULTS}/{{capture}}/export/asset.usdz",
@@ -24,6 +25,7 @@ rule export:
         "../../envs/recon.yaml"
     params:
         plane=get_plane,
+        views_dir=get_views_dir,
         settings=get_settings("export"),
     script:
         "../scripts/export.py"

@@ -16,4 +16,5 @@ export_asset(
     build_settings(ExportSettings, job_settings("export", snakemake)),  # noqa: F821
     cameras_json=snakemake.input.cameras,  # noqa: F821
     plane_json=snakemake.params.plane,  # noqa: F821
+    views_dir=snakemake.params.views_dir,  # noqa: F821
 )
