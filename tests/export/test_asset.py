@@ -332,3 +332,27 @@ def test_support_plane_stands_the_asset_upright_at_scale(tmp_path, model, height
     out = export_asset(*model.inputs(), tmp_path / "void", ExportSettings(), cameras_json=model.cameras_json,
                        plane_json=tmp_path / "absent.json")
     assert np.allclose(read_glb(out["glb"]).object_to_world[:3, 3], 0)
+
+
+def test_marker_mat_sets_the_scale(tmp_path, tmp_path_factory, model):
+    """export.marker_square_m: the scale comes from the ChArUco mat in the views (recon.marker),
+    within 1 %; a declared mat missing from the views is an error naming the folder."""
+    from _tabletop_scene import MAT_TEST, MAT_TEST_SQUARE_UNITS, tabletop_capture
+
+    cap = tabletop_capture(tmp_path_factory.getbasetemp(), **MAT_TEST)
+    s = ExportSettings(up="identity", marker_square_m=0.03, object_height_m=5.0)  # the mat wins
+    out = export_asset(*model.inputs(), tmp_path / "export", s, cameras_json=cap / "gt" / "cameras.json",
+                       views_dir=cap / "images")
+    a = read_glb(out["glb"])
+    true = 0.03 / MAT_TEST_SQUARE_UNITS
+    scale = float(np.cbrt(np.linalg.det(a.object_to_world[:3, :3])))
+    assert abs(scale / true - 1) < 0.01
+    import pygltflib
+
+    extras = pygltflib.GLTF2().load(str(out["glb"])).asset.extras["recon"]
+    assert extras["scale_source"] == "marker mat" and extras["marker_mat"]["neighbour_pairs"] >= 6
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ExportError, match="empty"):
+        export_asset(*model.inputs(), tmp_path / "export2", s, cameras_json=cap / "gt" / "cameras.json",
+                     views_dir=empty)
