@@ -858,23 +858,27 @@ def run_tabletop_masks(
                     raise MaskError(f"{p}: mask is {m.shape[1]}x{m.shape[0]} but the image is "
                                     f"{cam.width}x{cam.height}; give masks the size of the photos")
                 given[cam.stem] = m
-    plane, plane_info = None, {"found": False, "reason": "every view has a given mask"}
-    if len(given) < len(cams):
-        if len(cams) < settings.min_views:
-            plane_info = {"found": False, "reason": f"{len(cams)} views (need >= {settings.min_views})"}
+    # the plane is looked for even when every view has a given mask: the later stages use it
+    plane, plane_info = None, {"found": False}
+    if len(cams) < settings.min_views:
+        plane_info = {"found": False, "reason": f"{len(cams)} views (need >= {settings.min_views})"}
+    else:
+        if points is not None:
+            pts = read_points_ply(points)
+            plane_info_source = f"sparse points {points}"
         else:
-            if points is not None:
-                pts = read_points_ply(points)
-                plane_info_source = f"sparse points {points}"
-            else:
-                pts = triangulate_points(images, cams, settings.triangulate_pairs)
-                plane_info_source = "points triangulated from the views with the known cameras"
-            plane, plane_info = fit_support_plane(pts, cams, settings.plane)
-            plane_info["source"] = plane_info_source
+            pts = triangulate_points(images, cams, settings.triangulate_pairs)
+            plane_info_source = "points triangulated from the views with the known cameras"
+        plane, plane_info = fit_support_plane(pts, cams, settings.plane)
+        plane_info["source"] = plane_info_source
     masks: dict[str, np.ndarray] = {}
     views: dict[str, dict] = {}
     seg_info = None
-    if plane is not None:
+    if plane is not None and len(given) == len(cams):
+        log.info("support plane found (%s): %s; every view has a given mask", plane_info["source"],
+                 plane_info["reason"])
+        method = "given"
+    elif plane is not None:
         log.info("support plane found (%s): %s", plane_info["source"], plane_info["reason"])
         derived, seg_info = segment_tabletop(images, cams, plane, settings)
         for cam, m in zip(cams, derived, strict=True):
@@ -903,8 +907,9 @@ def run_tabletop_masks(
         for cam in cams:
             write_mask(tmp / f"{cam.stem}.png", masks[cam.stem])
         if plane is not None:
-            save_plane(tmp / "plane.json", plane, source=plane_info["source"],
-                       object_bbox={"lo": seg_info["hull"]["bbox_lo"], "hi": seg_info["hull"]["bbox_hi"]})
+            bbox = {} if seg_info is None else {
+                "object_bbox": {"lo": seg_info["hull"]["bbox_lo"], "hi": seg_info["hull"]["bbox_hi"]}}
+            save_plane(tmp / "plane.json", plane, source=plane_info["source"], **bbox)
         summary = {"method": method, "views": {c.stem: views[c.stem] for c in cams}, "plane": plane_info,
                    "segment": None if seg_info is None else {k: v for k, v in seg_info.items() if k != "views"},
                    "settings": asdict(settings), "seconds": time.perf_counter() - t0}
