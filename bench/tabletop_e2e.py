@@ -72,7 +72,7 @@ def capture_settings(obj: str, scene: str, args):
 def snakemake(captures: Path, results: Path, targets: list[str], preset: str) -> float:
     t0 = time.perf_counter()
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_WAIT_POLICY": "PASSIVE"}
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--config", f"captures={captures}",
+    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--keep-going", "--config", f"captures={captures}",
            f"results={results}", f"preset={preset}", "--", *targets]
     r = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
     (results / "snakemake.log").write_text(r.stdout + r.stderr)

@@ -181,6 +181,10 @@ def remesh(mesh: Mesh, target_faces: int, iterations: int = 8) -> Mesh:
                                                     preserveboundary=True, planarquadric=True)
     ms.meshing_isotropic_explicit_remeshing(iterations=iterations, targetlen=pymeshlab.PureValue(edge))
     ms.meshing_remove_unreferenced_vertices()
+    pinched = int(ms.get_topological_measures()["non_two_manifold_vertices"])
+    if pinched:  # remeshing can pinch a thin tunnel of the hull to a vertex: split it (stays closed)
+        log.info("remeshing left %d non-manifold vertices; split", pinched)
+        ms.meshing_repair_non_manifold_vertices()
     m = ms.current_mesh()
     out = Mesh(m.vertex_matrix(), m.face_matrix())
     if out.volume() < 0:
