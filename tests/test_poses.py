@@ -484,3 +484,21 @@ def test_sfm_support_plane_pass_replaces_the_masks_of_a_tabletop_capture(tmp_pat
     del ious[own]
     assert np.mean(list(ious.values())) > 0.95, ious
     assert not (stage / "tabletop").exists() and (stage / "masks.json").is_file()
+    # the frame fitted again to the object alone: z along the table's normal, the object's box
+    # centred and filling [-0.9, 0.9]; the cameras see the same pixels (a similarity of the world)
+    from recon.poses.stage import _object_frame_on_plane
+
+    before = load_cameras(stage / "cameras.json")
+    refit = _object_frame_on_plane(stage, 0.1)
+    after = load_cameras(stage / "cameras.json")
+    moved = load_plane(stage / "plane.json")
+    np.testing.assert_allclose(moved.normal, [0, 0, 1], atol=1e-9)
+    box = json.loads((stage / "plane.json").read_text())["object_bbox"]
+    lo, hi = np.asarray(box["lo"]), np.asarray(box["hi"])
+    assert np.max(hi - lo) == pytest.approx(1.8) and np.allclose(lo + hi, 0, atol=1e-9)
+    x = read_obj(cap / "gt" / "mesh.obj").v_pos[:50]
+    for b, a in zip(before.frames[:3], after.frames[:3], strict=True):
+        pb, pa = b.K @ (b.world_to_camera[:3, :3] @ x.T + b.world_to_camera[:3, 3:]), \
+            a.K @ (a.world_to_camera[:3, :3] @ refit.apply(x).T + a.world_to_camera[:3, 3:])
+        np.testing.assert_allclose(pb[:2] / pb[2], pa[:2] / pa[2], atol=1e-6)
+    assert abs(moved.height(refit.apply(x[:1]))[0] - plane.height(x[:1])[0] * refit.scale) < 1e-9
