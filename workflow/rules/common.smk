@@ -164,6 +164,11 @@ def get_given_masks(wildcards):
     )
 
 
+def get_given_masks_and_cameras(wildcards):
+    """The capture's mask files and its cameras.json (the masks stage reads both)."""
+    return get_given_masks(wildcards) + get_given_cameras_input(wildcards)
+
+
 def get_given_masks_dir(wildcards):
     return (
         str(capture_dir(wildcards.capture) / "masks")
@@ -205,6 +210,15 @@ def get_view_masks(wildcards):
     if has_cameras(wildcards.capture):
         return f"{RESULTS}/{wildcards.capture}/masks/masks.json"
     return f"{RESULTS}/{wildcards.capture}/poses/poses.json"
+
+
+def get_plane(wildcards, input):
+    """The support plane (recon.support): plane.json beside the file that marks the view masks
+    complete (masks/ for given cameras, poses/ after SfM); the stage that writes those masks
+    writes it only when it found a plane, and the stages reading it keep their behaviour for
+    an object in the void when it is absent. Derived from the inputs (their changes rerun).
+    """
+    return str(Path(input.masks).parent / "plane.json")
 
 
 def get_given_cameras(wildcards):

@@ -14,6 +14,8 @@ rule export:
         specular=f"{RESULTS}/{{capture}}/optimize/specular.exr",
         roughness=f"{RESULTS}/{{capture}}/optimize/roughness.exr",
         cameras=get_cameras,
+        masks=get_view_masks,
+        views=get_views,
     output:
         glb=update(f"{RESULTS}/{{capture}}/export/asset.glb"),
         usdz=update(f"{RESULTS}/{{capture}}/export/asset.usdz"),
@@ -25,6 +27,8 @@ rule export:
     conda:
         "../../envs/recon.yaml"
     params:
+        plane=get_plane,
+        views_dir=get_views_dir,
         settings=get_settings("export"),
     script:
         "../scripts/export.py"

@@ -30,6 +30,7 @@ rule optimize:
     params:
         views_dir=get_views_dir,
         masks_dir=get_view_masks_dir,
+        plane=get_plane,
         settings=get_settings("optimize"),
     script:
         "../scripts/optimize.py"

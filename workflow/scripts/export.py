@@ -15,4 +15,6 @@ with stage(snakemake.log[0]):  # noqa: F821 (injected by Snakemake); errors: see
         Path(snakemake.output.glb).parent,  # noqa: F821
         build_settings(ExportSettings, job_settings("export", snakemake)),  # noqa: F821
         cameras_json=snakemake.input.cameras,  # noqa: F821
+        plane_json=snakemake.params.plane,  # noqa: F821
+        views_dir=snakemake.params.views_dir,  # noqa: F821
     )

@@ -13,4 +13,5 @@ with stage(snakemake.log[0]):  # noqa: F821 (injected by Snakemake); errors: see
         Path(snakemake.output.mesh).parent,  # noqa: F821
         build_settings(InitMeshSettings, job_settings("init_mesh", snakemake)),  # noqa: F821
         given_mesh=snakemake.params.given or None,  # noqa: F821
+        plane_json=snakemake.params.plane,  # noqa: F821
     )

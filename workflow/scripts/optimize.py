@@ -14,4 +14,5 @@ with stage(snakemake.log[0]):  # noqa: F821 (injected by Snakemake); errors: see
         snakemake.input.mesh,  # noqa: F821
         Path(snakemake.output.mesh).parent,  # noqa: F821
         settings_from_dict(job_settings("optimize", snakemake)),  # noqa: F821
+        plane_json=snakemake.params.plane,  # noqa: F821
     )
