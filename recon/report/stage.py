@@ -261,11 +261,15 @@ def make_report(
     }
     if opt_stages:
         metrics["optimize"]["stages"] = opt_stages
+    metrics["asset"] = asset_frame(glb)
     metrics["light_intensity"] = light
     metrics["settings"] = dataclasses.asdict(settings)
 
     page = page_html.Page(capture=capture, preset=preset, material_model=material, material_selection=selection,
                           camera_refinement=cameras_info)
+    if metrics["asset"].get("scale_warning"):
+        page.notes.append(f"Asset scale: {metrics['asset']['scale_source']}.")
+        log.warning("the asset's scale is unknown: %s", metrics["asset"]["scale_source"])
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as tmp:
         # ---- 3D view ----
@@ -380,6 +384,21 @@ def camera_refinement(summary: dict) -> dict | None:
         h = cam["heldout_alignment"]
         out["heldout_alignment"] = {k: h.get(k) for k in ("mean_rotation_deg", "max_rotation_deg",
                                                           "mean_center_shift_object", "max_center_shift_object")}
+    return out
+
+
+def asset_frame(glb) -> dict:
+    """How the export stage placed and scaled the asset (its ``asset.extras.recon``: placement,
+    scale source, metres per unit); ``scale_warning`` when the scale is unknown."""
+    import pygltflib
+
+    try:
+        extras = pygltflib.GLTF2().load(str(glb)).asset.extras or {}
+    except Exception as e:  # noqa: BLE001 - a diagnostic: the report goes on without it
+        return {"error": f"{glb}: {e}"}
+    rec = extras.get("recon", {}) if isinstance(extras, dict) else {}
+    out = {k: rec.get(k) for k in ("placement", "scale_source", "meters_per_unit")}
+    out["scale_warning"] = isinstance(out["scale_source"], str) and out["scale_source"].startswith("unknown")
     return out
 
 
