@@ -188,7 +188,7 @@ class ImagingParams:
         m = self.model
         out = []
         if m.has("flash_offset") and self.offset_given is None:
-            out.append({"params": [self.offset_raw], "lr": lr})
+            out.append({"params": [self.offset_raw], "lr": 2 * lr})
         if m.has("exposure"):
             out.append({"params": [self.log_gain], "lr": 0.5 * lr})
         if m.has("ambient"):
@@ -284,6 +284,7 @@ class ImagingProblem:
         self.tone, self.scale = tone, scale
         tgt = targets.images.reshape(-1, 3)[torch.from_numpy(self.pixels)]
         self.target_phi = objective.tone_map(tgt, tone, scale)
+        self.target_linear = tgt
         self.weight = targets.weights.reshape(-1, 1)[torch.from_numpy(self.pixels)]
         rest = self.pixels % (H * W)
         row, col = rest // W, rest % W
@@ -360,6 +361,7 @@ class ImagingFit:
     heldout: float = float("nan")
     tile_errors: np.ndarray | None = None
     seconds: float = 0.0
+    rmse_srgb: float = float("nan")
 
 
 def _lr_decay(opt, base: list[float], it: int, n: int) -> None:
@@ -405,9 +407,11 @@ def fit_imaging(model: ImagingModel, material: MaterialModel, prob: ImagingProbl
 
 
 def heldout_tiles(fit: ImagingFit, prob: ImagingProblem, light: float, s: SelectionSettings,
-                  im: ImagingSettings) -> np.ndarray:
-    """Per-tile errors of the white checkerboard tiles of the held-out views; a model with
-    per-view exposure first fits the held-out views' gains on their black tiles."""
+                  im: ImagingSettings) -> tuple[np.ndarray, float]:
+    """Per-tile errors of the white checkerboard tiles of the held-out views and the RMSE of
+    sRGB-encoded values over their unclipped pixels (DESIGN section 5's image RMSE, on the white
+    tiles); a model with per-view exposure first fits the held-out views' gains on their black
+    tiles."""
     maps = fit.material.maps
     with torch.no_grad():
         d = torch.tensor(np.asarray(maps["diffuse"], np.float32))
@@ -432,7 +436,12 @@ def heldout_tiles(fit: ImagingFit, prob: ImagingProblem, light: float, s: Select
             loss.backward()
             opt.step()
     with torch.no_grad():
-        return prob.tile_errors(prob.render(d, sp, ro, light, s.r_min, ip), "white")
+        pred = prob.render(d, sp, ro, light, s.r_min, ip)
+        white = (~prob.black) & (prob.weight[:, 0] > 0)
+        tgt = prob.target_linear[white]
+        diff = srgb_encode(pred[white]) - srgb_encode(tgt)
+        rmse = float(torch.sqrt((diff * diff).mean())) if diff.numel() else float("nan")
+        return prob.tile_errors(pred, "white"), rmse
 
 
 def select_imaging(mesh, material_fit: Fit, covered: np.ndarray, train: ViewSet, heldout: ViewSet, light: float,
@@ -462,7 +471,7 @@ def select_imaging(mesh, material_fit: Fit, covered: np.ndarray, train: ViewSet,
     def evaluate(model: ImagingModel, init_maps: dict, init_params: ImagingParams | None) -> ImagingFit:
         fit = fit_imaging(model, mat, p_train, init_maps, covered, light, s, im, init_params, length, tone_scale,
                           offset_given)
-        fit.tile_errors = heldout_tiles(fit, p_held, light, s, im)
+        fit.tile_errors, fit.rmse_srgb = heldout_tiles(fit, p_held, light, s, im)
         fit.heldout = float(np.nanmean(fit.tile_errors))
         if progress is not None:
             progress(model, fit)
@@ -470,7 +479,8 @@ def select_imaging(mesh, material_fit: Fit, covered: np.ndarray, train: ViewSet,
 
     current = evaluate(base_model, material_fit.maps, None)
     rows = [{"step": "ideal" if offset_given is None else "ideal (flash offset given)", "terms": [],
-             "heldout_error": current.heldout, "train_loss": current.train_loss, "seconds": current.seconds,
+             "heldout_error": current.heldout, "heldout_rmse_srgb": current.rmse_srgb,
+             "train_loss": current.train_loss, "seconds": current.seconds,
              "accepted": True, "gain": None, "se": None, "relative_gain": None}]
     control = None
     todo = [c for c in TERMS if c in candidates]
@@ -486,8 +496,9 @@ def select_imaging(mesh, material_fit: Fit, covered: np.ndarray, train: ViewSet,
         fit = evaluate(cand, current.material.maps, current.params)
         cmp = compare(fit.tile_errors, control.tile_errors, s)
         rows.append({"step": term, "terms": list(cand.terms), "heldout_error": fit.heldout,
-                     "control_heldout_error": control.heldout, "train_loss": fit.train_loss,
-                     "seconds": fit.seconds, "values": fit.params.report(), **cmp})
+                     "control_heldout_error": control.heldout, "heldout_rmse_srgb": fit.rmse_srgb,
+                     "control_heldout_rmse_srgb": control.rmse_srgb, "train_loss": fit.train_loss,
+                     "seconds": fit.seconds, "control_seconds": control.seconds, "values": fit.params.report(), **cmp})
         log.info("imaging: %-13s held-out %.5f (gain %+.5f, SE %.5f) %s", term, fit.heldout, cmp["gain"], cmp["se"],
                  "kept" if cmp["accepted"] else "rejected")
         if cmp["accepted"]:
@@ -505,6 +516,7 @@ def select_imaging(mesh, material_fit: Fit, covered: np.ndarray, train: ViewSet,
         "chosen_label": current.model.label(),
         "values": current.params.report(),
         "chosen_heldout_error": current.heldout,
+        "chosen_heldout_rmse_srgb": current.rmse_srgb,
         "seconds": time.perf_counter() - t0,
     }
     return current, evidence

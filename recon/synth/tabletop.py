@@ -32,7 +32,7 @@ from recon.io.cameras import Camera, CameraSet, intrinsics, look_at
 from recon.io.mesh import Mesh
 from recon.support import SupportPlane
 from recon.synth.noise import dots, fbm
-from recon.render.mitsuba_bsdf import bsdf_dict, clip_range, mitsuba_mesh, register, scene_dict
+from recon.render.mitsuba_bsdf import ambient_scene_dict, bsdf_dict, clip_range, mitsuba_mesh, register, scene_dict
 from recon.render.mitsuba_bsdf import render_reference
 
 TABLE_SPECULAR = 0.04
@@ -178,8 +178,7 @@ class TabletopScene:
         backdrop glowing with it where there is one, else a constant environment)."""
 
         mi = register()
-        d = scene_dict(self.mesh, self.textures, cam, light_intensity, spp, light_position=light_position,
-                       ambient=ambient)
+        d = scene_dict(self.mesh, self.textures, cam, light_intensity, spp, light_position=light_position)
         d["table"] = mitsuba_mesh(self.table, "table", bsdf=mi.load_dict(bsdf_dict(self.table_textures)))
         corners = [self.mesh.v_pos, self.table.v_pos]
         if self.background > 0:
@@ -188,15 +187,19 @@ class TabletopScene:
                                "flip_normals": True,
                                "bsdf": bsdf_dict({"diffuse": np.full(3, self.background), "specular": 0.0,
                                                   "roughness": 1.0})}
-            if ambient > 0:  # the closed backdrop would hide the environment: it is the room's light
-                d["background"]["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": [float(ambient)] * 3}}
-                del d["ambient"]
             corners.append(self.center + r * np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1)
                                                        for sz in (-1, 1)]))
         d["sensor"].update(clip_range(cam, np.concatenate(corners)))
         scene = mi.load_dict(d)
-        img = mi.render(scene, seed=int(seed), spp=int(spp))
-        return np.array(img, dtype=np.float32)[:, :, :3]
+        img = np.array(mi.render(scene, seed=int(seed), spp=int(spp)), dtype=np.float32)[:, :, :3]
+        if ambient > 0:
+            da = ambient_scene_dict(d, ambient)
+            if "background" in da:  # the closed backdrop would hide the environment: it is the room's light
+                da["background"] = {**da["background"],
+                                    "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [float(ambient)] * 3}}}
+            amb = mi.render(mi.load_dict(da), seed=int(seed) + 1, spp=int(spp))
+            img += np.array(amb, dtype=np.float32)[:, :, :3]
+        return img
 
     def object_coverage(self, cam: Camera, spp: int, seed: int) -> np.ndarray:
         """(H, W) float32 fraction of each pixel's footprint on the object alone."""
