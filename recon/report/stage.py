@@ -266,7 +266,8 @@ def make_report(
     metrics["light_intensity"] = light
     metrics["settings"] = dataclasses.asdict(settings)
 
-    page = page_html.Page(capture=capture, preset=preset, material_model=material, material_selection=selection)
+    page = page_html.Page(capture=capture, preset=preset, material_model=material, material_selection=selection,
+                          imaging_selection=imaging)
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as tmp:
         # ---- 3D view ----

@@ -231,3 +231,46 @@ def test_ideal_capture_keeps_nothing(tmp_path):
     p = _known_mesh(cap, 128)
     _, ev = _select(p, ("flash_offset", "exposure", "ambient", "falloff"))
     assert ev["chosen"] == [], ev["candidates"]
+
+
+def test_optimize_stage_runs_the_imaging_selection(tmp_path):
+    """select_imaging in the optimize stage: the given flash offset is used (not fitted), tone is
+    not tried on EXR views, summary.json records the choice with gain and SE per step."""
+    import json
+
+    import synthetic
+
+    from recon.optimize import optimize_capture
+    from recon.optimize.settings import OptimizeSettings, StageSettings
+
+    cap = synthetic.make_capture(tmp_path / "cap", n_views=8, size=32, spp=16, subdivisions=3)
+    root = tmp_path / "cap"
+    s = OptimizeSettings(resolution=32, spp=1, views_per_iteration=2, checkpoint_every=2, w_edge=0.01,
+                         stages=(StageSettings(0.12, 32, 2),), select_imaging=True, holdout_every=4,
+                         select_iterations=4, select_image_size=32, select_spp=1,
+                         imaging_terms=("flash_offset", "exposure", "tone"), flash_offset=(0.01, 0.0, 0.0))
+    assert s.holds_out
+    out = optimize_capture(sorted((root / "images").glob("*.exr")), sorted((root / "masks").glob("*.png")), None,
+                           root / "cameras.json", root / "init.obj", tmp_path / "out", s, progress=False)
+    assert cap is not None
+    ev = out["imaging_selection"]
+    assert ev["flash_offset_given"] == [0.01, 0.0, 0.0]
+    assert ev["candidates_tried"] == ["exposure"]  # offset given, tone not for linear views
+    assert ev["values"]["flash_offset_source"] == "given"
+    assert out["imaging_model"] == ev["chosen"]
+    for r in ev["candidates"][1:]:
+        assert np.isfinite(r["gain"]) and np.isfinite(r["se"]) and "accepted" in r
+    saved = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert saved["imaging_selection"]["chosen"] == ev["chosen"]
+
+
+def test_imaging_settings_validation():
+    from recon.optimize.settings import OptimizeSettings
+
+    with pytest.raises(ValueError, match="imaging_terms"):
+        OptimizeSettings(imaging_terms=("vignette",))
+    with pytest.raises(ValueError, match="flash_offset"):
+        OptimizeSettings(flash_offset=(0.0, float("nan"), 0.0))
+    with pytest.raises(ValueError, match="tone_curve"):
+        OptimizeSettings(tone_curve="srgb")
+    assert OptimizeSettings(flash_offset=[0.01, 0, 0]).to_dict()["flash_offset"] == [0.01, 0.0, 0.0]
