@@ -110,8 +110,9 @@ def albedo_rmse(cap: Path, maps: dict, covered: np.ndarray) -> float:
     return float(np.sqrt((d[covered] ** 2).mean()))
 
 
-def parameter_errors(p: dict, params, bbox: float) -> dict:
-    """Recovered imaging values against gt/imaging.json (terms the fit has)."""
+def parameter_errors(p: dict, params, bbox: float, r2_max: float = 1.0) -> dict:
+    """Recovered imaging values against gt/imaging.json (terms the fit has); the falloff over the
+    image radii the object covers (r^2 <= ``r2_max``), the tone curve over linear 0.01-0.9."""
     gt, rep, errs = p["gt"], params.report(), {}
     if gt is None:
         return errs
@@ -126,8 +127,9 @@ def parameter_errors(p: dict, params, bbox: float) -> dict:
     if "ambient" in rep:
         errs["ambient_ratio"] = rep["ambient"] / gt["ambient_radiance"] if gt["ambient_radiance"] > 0 else None
     if "falloff" in rep:
-        r2 = torch.linspace(0, 1, 101)
+        r2 = torch.linspace(0, r2_max, 101)
         k_true = torch.tensor([gt["falloff"]["k1"], gt["falloff"]["k2"]])
+        errs["falloff_r2_max"] = r2_max
         errs["falloff_max_abs"] = float((falloff(r2, params.falloff_k.detach()) - falloff(r2, k_true)).abs().max())
     if "tone_curve" in rep:
         x = torch.linspace(0.01, 0.9, 90)
@@ -149,6 +151,7 @@ def run_case(root: Path, case: str, args) -> dict:
     pt = ImagingProblem(gb_t, p["train"], s.tone_map, p["scale"], s.tile)
     ph = ImagingProblem(gb_h, p["held"], s.tone_map, p["scale"], s.tile)
     terms = [t for t in TERMS if t != "tone" or p["ldr"]]
+    r2_max = float(pt.r2[(pt.weight[:, 0] > 0) & (pt.target_linear.sum(1) > 0)].max())
     modelled_terms = terms if case == "phone" else ([case] if case in TERMS else [])
     row = {"case": case, "effects": EFFECTS[case], "synth_seconds": p["t_synth"]}
     for label, model in (("not_modelled", ImagingModel(())), ("modelled", ImagingModel(tuple(modelled_terms)))):
@@ -158,7 +161,7 @@ def run_case(root: Path, case: str, args) -> dict:
         tiles, rmse = heldout_tiles(fit, ph, p["light"], s, im)
         row[label] = {"terms": list(model.terms), "heldout_error": float(np.nanmean(tiles)), "heldout_rmse_srgb": rmse,
                       "albedo_rmse": albedo_rmse(p["cap"], fit.material.maps, p["covered"]), "seconds": fit.seconds,
-                      "values": fit.params.report(), "errors": parameter_errors(p, fit.params, bbox)}
+                      "values": fit.params.report(), "errors": parameter_errors(p, fit.params, bbox, r2_max)}
         out(f"{case:13s} {label:13s} held-out {row[label]['heldout_error']:.5f} rmse {rmse:.4f} "
             f"albedo {row[label]['albedo_rmse']:.4f} {fit.seconds:6.1f} s {row[label]['errors']}")
     if not args.no_selection:
@@ -196,7 +199,8 @@ def write_docs(rows: list[dict], args, command: str) -> None:
         kept = ", ".join(f"{st['step']} ({st['gain']:+.4f} +- {st['se']:.4f})" for st in sel.get("steps", [])[1:]
                          if st["accepted"]) or "nothing"
         effects = ", ".join(f"{k}={v}" for k, v in r["effects"].items()) or "none"
-        errs = ", ".join(f"{k} {v:.3g}" for k, v in m.get("errors", {}).items() if isinstance(v, float))
+        errs = ", ".join(f"{k} {v:.3g}" for k, v in m.get("errors", {}).items()
+                         if isinstance(v, float) and k != "falloff_r2_max")
         lines.append(f"| {r['case']} | {effects} | {n['heldout_error']:.4f} / {m['heldout_error']:.4f} | "
                      f"{n['heldout_rmse_srgb']:.4f} / {m['heldout_rmse_srgb']:.4f} | {n['albedo_rmse']:.4f} / "
                      f"{m['albedo_rmse']:.4f} | {n['seconds']:.1f} / {m['seconds']:.1f} | {errs or '-'} | {kept} |")
@@ -228,10 +232,13 @@ def main(argv=None) -> int:
     ap.add_argument("--no-docs", action="store_true")
     args = ap.parse_args(argv)
     torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
-    rows = []
+    res = args.out / "results.json"
+    # rows of cases not run now are kept from an earlier run (same settings: --cases reruns some)
+    old = {r["case"]: r for r in json.loads(res.read_text())} if res.is_file() else {}
     for case in args.cases.split(","):
-        rows.append(run_case(args.out, case, args))
-        (args.out / "results.json").write_text(json.dumps(rows, indent=1))
+        old[case] = run_case(args.out, case, args)
+        res.write_text(json.dumps([old[c] for c in EFFECTS if c in old], indent=1))
+    rows = [old[c] for c in EFFECTS if c in old]
     if not args.no_docs:
         write_docs(rows, args, "python bench/phone.py " + " ".join(argv if argv is not None else sys.argv[1:]))
     return 0

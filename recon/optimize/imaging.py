@@ -179,7 +179,7 @@ class ImagingParams:
         self.offset_given = None if offset_given is None else torch.tensor(np.asarray(offset_given, np.float32))
         self.offset_raw = torch.zeros(3, dtype=dt, requires_grad=True)
         self.log_gain = torch.zeros(n_views, dtype=dt, requires_grad=True)
-        self.ambient_raw = torch.full((1,), -6.0, dtype=dt, requires_grad=True)
+        self.ambient_raw = torch.full((1,), -4.0, dtype=dt, requires_grad=True)
         self.falloff_k = torch.zeros(2, dtype=dt, requires_grad=True)
         self.tone_raw = torch.zeros(int(knots), dtype=dt, requires_grad=True)
 
@@ -192,7 +192,7 @@ class ImagingParams:
         if m.has("exposure"):
             out.append({"params": [self.log_gain], "lr": lr})
         if m.has("ambient"):
-            out.append({"params": [self.ambient_raw], "lr": 2 * lr})
+            out.append({"params": [self.ambient_raw], "lr": 4 * lr})
         if m.has("falloff"):
             out.append({"params": [self.falloff_k], "lr": 0.5 * lr})
         if m.has("tone"):
