@@ -67,7 +67,7 @@ TABLETOP_FIELDS = ("scene", "elevation_range", "rings", "distance_jitter", "aim_
 """Settings of the tabletop scene only; a void capture's gt/synth.json leaves them out (so the
 files of void captures made before they existed regenerate bit-identically)."""
 PHONE_FIELDS = ("flash_offset", "ambient", "exposure_jitter", "wb_jitter", "falloff", "tone_curve",
-                "tone_contrast", "jpeg_quality")
+                "tone_contrast", "jpeg_quality", "falloff_gainmap")
 """Settings of a phone's imaging (:mod:`recon.synth.imaging`); gt/synth.json records them only when
 one differs from its default (so captures made before they existed regenerate bit-identically)."""
 _EXT = {"dng": ".dng", "exr": ".exr", "png16": ".png", "png8": ".png", "jpg": ".jpg"}
@@ -175,6 +175,9 @@ class SynthSettings:
         Phone: the S-curve's exponent p (1 = no S-curve).
     jpeg_quality : int
         JPEG quality (``format="jpg"``).
+    falloff_gainmap : bool
+        Phone DNG (``format="dng"``): the DNG carries the falloff's correction as an OpcodeList3
+        GainMap (17 x 13 points, 3 planes), as phone DNGs do; linearize applies it.
     """
 
     object: str = "blob"
@@ -220,6 +223,7 @@ class SynthSettings:
     tone_curve: str = "none"
     tone_contrast: float = 1.4
     jpeg_quality: int = 95
+    falloff_gainmap: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "view_z_range", tuple(float(z) for z in self.view_z_range))
@@ -317,6 +321,8 @@ class SynthSettings:
             raise SynthError(f"tone_curve={self.tone_curve!r} needs format='jpg' (a phone's JPEG)")
         if not 0.5 <= self.tone_contrast <= 4.0:
             raise SynthError(f"tone_contrast={self.tone_contrast}: use 0.5 to 4")
+        if self.falloff_gainmap and (self.format != "dng" or not any(self.falloff)):
+            raise SynthError("falloff_gainmap needs format='dng' and a falloff to correct")
         if not 50 <= self.jpeg_quality <= 100:
             raise SynthError(f"jpeg_quality={self.jpeg_quality}: use 50 to 100")
 
@@ -461,6 +467,7 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
     offset = np.asarray(s.flash_offset) * s.scale
     l_amb = phone.ambient_radiance(s.ambient, cams.light_intensity, s.distance * s.scale)
     falloff = phone.falloff_map(s.width, s.height, *s.falloff) if any(s.falloff) else None
+    gainmap = phone.falloff_gainmap(s.width, s.height, *s.falloff) if s.falloff_gainmap else None
 
     with atomic_dir(out_dir) as tmp:
         (tmp / "images").mkdir()
@@ -489,7 +496,8 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
                 cfa = sensor.capture(rgb, e["exposure_time"], e["iso"], e["f_number"],
                                      rng=noise_rng, noise=s.noise)
                 write_dng(path, cfa, sensor, e["exposure_time"], e["iso"], e["f_number"],
-                          focal_length_mm=focal_mm)
+                          focal_length_mm=focal_mm,
+                          opcode_list3=[gainmap.to_opcode()] if s.falloff_gainmap else None)
             else:
                 photo = _add_noise(rgb, sensor, noise_rng) if s.noise else rgb
                 if s.format == "jpg":

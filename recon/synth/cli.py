@@ -66,6 +66,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="format jpg: the phone's tone curve (sRGB + S-curve) or plain sRGB")
     g.add_argument("--tone-contrast", type=float, dest="tone_contrast", help="the S-curve's exponent")
     g.add_argument("--jpeg-quality", type=int, dest="jpeg_quality")
+    g.add_argument("--falloff-gainmap", dest="falloff_gainmap", action="store_true", default=None,
+                   help="format dng: the DNG carries the falloff's correction as an OpcodeList3 GainMap")
     p.add_argument("--cameras", dest="write_cameras", action="store_true", default=None,
                    help="write the top-level cameras.json")
     p.add_argument("--no-cameras", dest="write_cameras", action="store_false",
@@ -103,7 +105,7 @@ def command_line(args: argparse.Namespace) -> str:
             "wb_jitter": "--wb-jitter", "tone_curve": "--tone-curve", "tone_contrast": "--tone-contrast",
             "jpeg_quality": "--jpeg-quality"}
     flags = {"write_cameras": "cameras", "write_masks": "masks", "write_gt_linear": "gt-linear",
-             "noise": "noise"}
+             "noise": "noise", "falloff_gainmap": "falloff-gainmap"}
     parts = ["python -m recon synth", str(args.out_dir)]
     if args.preset:
         parts += ["--preset", args.preset]

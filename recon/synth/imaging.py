@@ -47,6 +47,20 @@ def falloff_map(width: int, height: int, k1: float, k2: float) -> np.ndarray:
     return (1.0 + k1 * r2 + k2 * r2 * r2).astype(np.float32)
 
 
+def falloff_gainmap(width: int, height: int, k1: float, k2: float, points=(13, 17)):
+    """The DNG OpcodeList3 GainMap (3 planes, the whole image) that undoes ``1 + k1 r^2 + k2 r^4``:
+    gains 1 / falloff at ``points`` (rows, columns) map points spread over the image from edge to
+    edge (relative coordinates 0..1, r = 1 in the corners)."""
+    from recon.io.dng import GainMap
+
+    pv, ph = points
+    v, h = np.meshgrid(np.linspace(0, 1, pv), np.linspace(0, 1, ph), indexing="ij")
+    r2 = (((h - 0.5) * width) ** 2 + ((v - 0.5) * height) ** 2) / ((width / 2) ** 2 + (height / 2) ** 2)
+    g = 1.0 / (1.0 + k1 * r2 + k2 * r2 * r2)
+    return GainMap(0, 0, 0, 0, 0, 3, 1, 1, (1 / (pv - 1), 1 / (ph - 1)), (0.0, 0.0),
+                   np.repeat(g[:, :, None], 3, axis=2).astype(np.float32))
+
+
 def s_curve(s: np.ndarray, p: float) -> np.ndarray:
     """``s^p / (s^p + (1 - s)^p)`` on [0, 1] (monotone, S(0) = 0, S(1/2) = 1/2, S(1) = 1)."""
     s = np.clip(np.asarray(s, dtype=np.float64), 0.0, 1.0)
@@ -155,7 +169,8 @@ def imaging_record(settings, cams, views: list[ViewImaging], exposures: list[dic
         "white_balance_jitter": float(s.wb_jitter),
         "white_balance_gains": [list(v.wb) for v in views],
         "falloff": {"model": "1 + k1 r^2 + k2 r^4, r = distance from the image centre / half diagonal",
-                    "k1": float(s.falloff[0]), "k2": float(s.falloff[1])},
+                    "k1": float(s.falloff[0]), "k2": float(s.falloff[1]),
+                    "dng_gainmap": bool(getattr(s, "falloff_gainmap", False))},
         "tone_curve": {"name": s.tone_curve, "contrast": float(s.tone_contrast),
                        "formula": "S(srgb(y)), S(s) = s^p / (s^p + (1 - s)^p)" if s.tone_curve == "phone"
                        else "srgb(y)" if s.format in ("png8", "png16", "jpg") else "identity",

@@ -4,6 +4,7 @@ photos made exactly as gt/imaging.json says, JPEG EXIF that linearize reads back
 import dataclasses
 import json
 
+import cv2
 import numpy as np
 import pytest
 
@@ -122,3 +123,25 @@ def test_ambient_adds_the_recorded_radiance(tmp_path):
     amb = (both - flash)[hit].mean()
     # occlusion (grooves) only lowers it; the unoccluded value is the upper bound
     assert 0.6 * 0.5 * gt["ambient_radiance"] < amb < 1.05 * 0.5 * gt["ambient_radiance"], amb
+
+
+def test_dng_gainmap_undoes_the_falloff(tmp_path):
+    """A phone DNG whose lens falloff is corrected by an OpcodeList3 GainMap: linearize applies
+    it and returns the scene (gt/linear) again; without the map the corners stay dark."""
+    base = dataclasses.replace(SMALL, format="dng", width=64, height=48, falloff=(-0.4, 0.0), n_views=1,
+                               distance=3.0, albedo=0.6)
+    out = {}
+    for gm in (True, False):
+        cap = make_capture(tmp_path / f"gm{gm}", dataclasses.replace(base, falloff_gainmap=gm))
+        info = linearize_capture(cap, tmp_path / f"lin{gm}")
+        assert bool(info["images"]["0000"]["opcodes_applied"]) == gm
+        x = read_exr(cap / "gt" / "linear" / "0000.exr")
+        got = read_exr(tmp_path / f"lin{gm}" / "0000.exr")
+        # away from the silhouette (demosaicing mixes object and background there)
+        fg = cv2.erode(((x.mean(2) > 0.05) & (x.max(2) < 0.9)).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        ratio = got.mean(2) / np.maximum(x.mean(2), 1e-6)
+        r2 = falloff_map(64, 48, 1.0, 0.0) - 1.0
+        out[gm] = [np.median(ratio[fg & (r2 >= lo) & (r2 < lo + 0.1)]) for lo in (0.1, 0.2, 0.3)]
+    # corrected: flat within 1 % at every radius; uncorrected: the falloff 1 - 0.4 r^2
+    np.testing.assert_allclose(out[True], 1.0, atol=0.01)
+    np.testing.assert_allclose(out[False], [1 - 0.4 * 0.15, 1 - 0.4 * 0.25, 1 - 0.4 * 0.35], atol=0.015)
