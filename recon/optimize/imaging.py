@@ -28,10 +28,11 @@ with the terms (each optional, :data:`TERMS`):
   segments, h(0) = 0, h(1) = 1, increments softplus(raw) >= 0 (a flat segment is allowed),
   i.e. pred = srgb^-1(H(srgb(min(y, 1)))).
 
-Selection: greedy forward over the terms in :data:`TERMS` order, each candidate (the current
-terms + one) fitted with the material maps of the chosen material model (warm-started from the
-accepted fit) and compared with a control (the current model refitted as long) by the same
-paired per-tile test as the material model (:func:`recon.optimize.material.compare`). The
+Selection: forward selection in rounds: each remaining term is fitted on top of the current
+terms with the material maps of the chosen material model (warm-started from the accepted fit)
+and compared with a control (the current model refitted as long) by the same paired per-tile
+test as the material model (:func:`recon.optimize.material.compare`); of the terms that pass,
+the one with the largest gain is kept, and the next round tries the rest. The
 held-out views' own exposure gains are unknown: their tiles are split like a checkerboard, the
 gains are fitted on the black tiles (maps and shared terms fixed) and every model is scored on
 the white tiles only.
@@ -484,28 +485,35 @@ def select_imaging(mesh, material_fit: Fit, covered: np.ndarray, train: ViewSet,
              "heldout_error": current.heldout, "heldout_rmse_srgb": current.rmse_srgb,
              "train_loss": current.train_loss, "seconds": current.seconds,
              "accepted": True, "gain": None, "se": None, "relative_gain": None}]
-    control = None
-    todo = [c for c in TERMS if c in candidates]
-    tried = set()
-    while todo:
-        term = todo.pop(0)
-        cand = current.model.plus(term)
-        if current.model.has(term) or cand in tried:
-            continue
-        tried.add(cand)
-        if control is None:
-            control = evaluate(current.model, current.material.maps, current.params)
-        fit = evaluate(cand, current.material.maps, current.params)
-        cmp = compare(fit.tile_errors, control.tile_errors, s)
-        rows.append({"step": term, "terms": list(cand.terms), "heldout_error": fit.heldout,
-                     "control_heldout_error": control.heldout, "heldout_rmse_srgb": fit.rmse_srgb,
-                     "control_heldout_rmse_srgb": control.rmse_srgb, "train_loss": fit.train_loss,
-                     "seconds": fit.seconds, "control_seconds": control.seconds, "values": fit.params.report(), **cmp})
-        log.info("imaging: %-13s held-out %.5f (gain %+.5f, SE %.5f) %s", term, fit.heldout, cmp["gain"], cmp["se"],
-                 "kept" if cmp["accepted"] else "rejected")
-        if cmp["accepted"]:
-            current, control = fit, None
-            todo = [c for c in TERMS if c in candidates and not current.model.has(c)]
+    # forward selection in rounds: every remaining term is fitted on top of the current model
+    # (one shared control per round) and the one with the largest passing gain is kept. Keeping
+    # the first term that passes (the first design) depended on the order: on a JPEG capture
+    # with the tone curve only, a falloff (tried before the tone curve) absorbed part of it.
+    remaining = [c for c in TERMS if c in candidates]
+    rnd = 0
+    while remaining:
+        rnd += 1
+        control = evaluate(current.model, current.material.maps, current.params)
+        best = None
+        for term in remaining:
+            cand = current.model.plus(term)
+            fit = evaluate(cand, current.material.maps, current.params)
+            cmp = compare(fit.tile_errors, control.tile_errors, s)
+            rows.append({"step": term, "round": rnd, "terms": list(cand.terms), "heldout_error": fit.heldout,
+                         "control_heldout_error": control.heldout, "heldout_rmse_srgb": fit.rmse_srgb,
+                         "control_heldout_rmse_srgb": control.rmse_srgb, "train_loss": fit.train_loss,
+                         "seconds": fit.seconds, "control_seconds": control.seconds,
+                         "values": fit.params.report(), **cmp, "accepted": False, "passed": cmp["accepted"]})
+            log.info("imaging: round %d %-13s held-out %.5f (gain %+.5f, SE %.5f) %s", rnd, term, fit.heldout,
+                     cmp["gain"], cmp["se"], "passes" if cmp["accepted"] else "rejected")
+            if cmp["accepted"] and (best is None or cmp["gain"] > best[2]):
+                best = (term, fit, cmp["gain"], len(rows) - 1)
+        if best is None:
+            break
+        term, current = best[0], best[1]
+        rows[best[3]]["accepted"] = True
+        log.info("imaging: round %d keeps %s", rnd, term)
+        remaining = [c for c in remaining if c != term]
     evidence = {
         "criterion": f"keep an imaging term when the held-out error drops below the current model's (refitted as "
                      f"long) by > {s.z} x SE of the paired per-tile difference and by > {100 * s.min_gain:.3g} %; "
