@@ -32,7 +32,8 @@ Selection: forward selection in rounds: each remaining term is fitted on top of 
 terms with the material maps of the chosen material model (warm-started from the accepted fit)
 and compared with a control (the current model refitted as long) by the same paired per-tile
 test as the material model (:func:`recon.optimize.material.compare`); of the terms that pass,
-the one with the largest gain is kept, and the next round tries the rest. The
+the one with the largest gain is kept, and the next round tries the rest. Then each kept term
+is checked backwards: dropped when the model without it (refitted) is not significantly worse. The
 held-out views' own exposure gains are unknown: their tiles are split like a checkerboard, the
 gains are fitted on the black tiles (maps and shared terms fixed) and every model is scored on
 the white tiles only.
@@ -514,6 +515,24 @@ def select_imaging(mesh, material_fit: Fit, covered: np.ndarray, train: ViewSet,
         rows[best[3]]["accepted"] = True
         log.info("imaging: round %d keeps %s", rnd, term)
         remaining = [c for c in remaining if c != term]
+    # backward check: a term kept early may be explained by one kept later; drop each term
+    # whose removal does not lose a significant gain (the kept model refitted as long as the
+    # reduced one, the same paired test)
+    for term in [t for t in current.model.terms if len(current.model.terms) > 1]:
+        reduced_model = ImagingModel(tuple(t for t in current.model.terms if t != term))
+        full = evaluate(current.model, current.material.maps, current.params)
+        reduced = evaluate(reduced_model, current.material.maps, current.params)
+        cmp = compare(full.tile_errors, reduced.tile_errors, s)
+        keep = cmp["accepted"]
+        rows.append({"step": f"without {term}", "round": "backward", "terms": list(reduced_model.terms),
+                     "heldout_error": reduced.heldout, "control_heldout_error": full.heldout,
+                     "heldout_rmse_srgb": reduced.rmse_srgb, "train_loss": reduced.train_loss,
+                     "seconds": reduced.seconds, **cmp, "accepted": not keep, "passed": keep,
+                     "note": "gain of keeping the term (the kept model over the model without it)"})
+        log.info("imaging: without %-13s gain of keeping it %+.5f (SE %.5f): %s", term, cmp["gain"], cmp["se"],
+                 "kept" if keep else "dropped")
+        if not keep:
+            current = reduced
     evidence = {
         "criterion": f"keep an imaging term when the held-out error drops below the current model's (refitted as "
                      f"long) by > {s.z} x SE of the paired per-tile difference and by > {100 * s.min_gain:.3g} %; "

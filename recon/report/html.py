@@ -196,9 +196,11 @@ def _imaging_section(sel: dict) -> str:
     rows = []
     for r in sel["candidates"]:
         gain, se = r.get("gain"), r.get("se")
+        backward = str(r.get("step", "")).startswith("without ")
+        decision = ("baseline" if gain is None else ("dropped" if r.get("accepted") else "kept") if backward
+                    else ("kept" if r.get("accepted") else "rejected"))
         rows.append((r.get("step", ""), ", ".join(r.get("terms") or []) or "ideal", r.get("heldout_error"),
-                     "" if gain is None else gain, "" if se is None else se,
-                     "baseline" if gain is None else ("kept" if r.get("accepted") else "rejected")))
+                     "" if gain is None else gain, "" if se is None else se, decision))
     chosen = ", ".join(sel.get("chosen") or []) or "none (the ideal image formation)"
     values = {k: v for k, v in (sel.get("values") or {}).items() if k in ("flash_offset", "ambient", "falloff")}
     return ("<h2>Camera imaging: terms chosen on held-out views</h2>"
