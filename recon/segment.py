@@ -43,6 +43,7 @@ in a :class:`SegmentError` with what to try.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -56,7 +57,7 @@ import numpy as np
 from recon.io.atomic import atomic_dir
 from recon.io.cameras import Camera, CameraSet, load_cameras
 from recon.io.images import ImageError, linear_to_srgb, read_exr, read_mask, write_mask
-from recon.masks import LUMA, MaskError, MaskSettings, derive_mask
+from recon.masks import LUMA, MaskError, MaskSettings, derive_mask, fit_given_mask
 from recon.support import PlaneSettings, SupportPlane, aim_point, fit_support_plane, save_plane, scene_scale
 
 log = logging.getLogger(__name__)
@@ -805,6 +806,26 @@ def read_points_ply(path: str | os.PathLike) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # The stage function
 # ---------------------------------------------------------------------------------------------
+def _cameras_at_image_size(cams: CameraSet, images: list[np.ndarray], source) -> CameraSet:
+    """A capture's cameras.json at the photos' size for linear views that linearize reduced
+    (``linearize.max_size``): K scaled per axis (image edges stay at 0 and W); MaskError for any
+    other size mismatch."""
+    frames = []
+    for cam, img in zip(cams, images, strict=True):
+        h, w = img.shape[:2]
+        if (w, h) == (cam.width, cam.height):
+            frames.append(cam)
+            continue
+        s = max(w, h) / max(cam.width, cam.height)
+        if not (s < 1 and (max(1, round(cam.width * s)), max(1, round(cam.height * s))) == (w, h)):
+            raise MaskError(f"{source}: '{cam.image}' is {cam.width}x{cam.height} but its image is {w}x{h}")
+        K = cam.K.copy()
+        K[0] *= w / cam.width
+        K[1] *= h / cam.height
+        frames.append(Camera(cam.image, w, h, K, cam.world_to_camera.copy()))
+    return dataclasses.replace(cams, frames=tuple(frames))
+
+
 def run_tabletop_masks(
     image_dir: str | os.PathLike,
     cameras: str | os.PathLike,
@@ -848,33 +869,34 @@ def run_tabletop_masks(
             images.append(read_exr(path))
         except ImageError as e:
             raise MaskError(f"{e}; rerun the stage that writes {image_dir}") from e
+    cams = _cameras_at_image_size(cams, images, cameras)
     given = {}
     if given_dir is not None:
         for cam in cams:
             p = Path(given_dir) / f"{cam.stem}.png"
             if p.is_file() and (given_stems is None or cam.stem in given_stems):
-                m = read_mask(p)
-                if m.shape != (cam.height, cam.width):
-                    raise MaskError(f"{p}: mask is {m.shape[1]}x{m.shape[0]} but the image is "
-                                    f"{cam.width}x{cam.height}; give masks the size of the photos")
-                given[cam.stem] = m
-    plane, plane_info = None, {"found": False, "reason": "every view has a given mask"}
-    if len(given) < len(cams):
-        if len(cams) < settings.min_views:
-            plane_info = {"found": False, "reason": f"{len(cams)} views (need >= {settings.min_views})"}
+                given[cam.stem] = fit_given_mask(read_mask(p), p, (cam.width, cam.height))
+    # the plane is looked for even when every view has a given mask: the later stages use it
+    plane, plane_info = None, {"found": False}
+    if len(cams) < settings.min_views:
+        plane_info = {"found": False, "reason": f"{len(cams)} views (need >= {settings.min_views})"}
+    else:
+        if points is not None:
+            pts = read_points_ply(points)
+            plane_info_source = f"sparse points {points}"
         else:
-            if points is not None:
-                pts = read_points_ply(points)
-                plane_info_source = f"sparse points {points}"
-            else:
-                pts = triangulate_points(images, cams, settings.triangulate_pairs)
-                plane_info_source = "points triangulated from the views with the known cameras"
-            plane, plane_info = fit_support_plane(pts, cams, settings.plane)
-            plane_info["source"] = plane_info_source
+            pts = triangulate_points(images, cams, settings.triangulate_pairs)
+            plane_info_source = "points triangulated from the views with the known cameras"
+        plane, plane_info = fit_support_plane(pts, cams, settings.plane)
+        plane_info["source"] = plane_info_source
     masks: dict[str, np.ndarray] = {}
     views: dict[str, dict] = {}
     seg_info = None
-    if plane is not None:
+    if plane is not None and len(given) == len(cams):
+        log.info("support plane found (%s): %s; every view has a given mask", plane_info["source"],
+                 plane_info["reason"])
+        method = "given"
+    elif plane is not None:
         log.info("support plane found (%s): %s", plane_info["source"], plane_info["reason"])
         derived, seg_info = segment_tabletop(images, cams, plane, settings)
         for cam, m in zip(cams, derived, strict=True):
@@ -903,8 +925,9 @@ def run_tabletop_masks(
         for cam in cams:
             write_mask(tmp / f"{cam.stem}.png", masks[cam.stem])
         if plane is not None:
-            save_plane(tmp / "plane.json", plane, source=plane_info["source"],
-                       object_bbox={"lo": seg_info["hull"]["bbox_lo"], "hi": seg_info["hull"]["bbox_hi"]})
+            bbox = {} if seg_info is None else {
+                "object_bbox": {"lo": seg_info["hull"]["bbox_lo"], "hi": seg_info["hull"]["bbox_hi"]}}
+            save_plane(tmp / "plane.json", plane, source=plane_info["source"], **bbox)
         summary = {"method": method, "views": {c.stem: views[c.stem] for c in cams}, "plane": plane_info,
                    "segment": None if seg_info is None else {k: v for k, v in seg_info.items() if k != "views"},
                    "settings": asdict(settings), "seconds": time.perf_counter() - t0}

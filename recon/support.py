@@ -71,6 +71,14 @@ class SupportPlane:
         p = np.asarray(points, dtype=np.float64)
         return p - self.height(p)[..., None] * self.normal
 
+    def clamp_above(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``points (..., 3)`` with those below the plane moved along the normal onto it, and the
+        (...,) bool array of the moved ones (a projection onto the half-space above)."""
+        p = np.asarray(points, dtype=np.float64)
+        h = self.height(p)
+        below = h < 0
+        return p - np.minimum(h, 0.0)[..., None] * self.normal, below
+
     def ray_hit(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """Ray parameter t of ``origins + t * directions`` on the plane (inf where parallel)."""
         o = np.asarray(origins, dtype=np.float64)
@@ -108,6 +116,22 @@ def load_plane(path: str | os.PathLike) -> SupportPlane:
         return SupportPlane(np.asarray(data["normal"], dtype=np.float64), float(data["offset"]))
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise PlaneError(f"{path}: not a plane file ({e}); it needs 'normal' (3 numbers) and 'offset'") from e
+
+
+def plane_if_found(path: str | os.PathLike | None) -> SupportPlane | None:
+    """The plane in ``path``, or None when ``path`` is None or names no file.
+
+    The masks stage (given cameras) and the poses stage (SfM) write ``plane.json`` beside their
+    masks only when they found a support plane; the later stages take its path and keep their
+    behaviour for an object in the void when it is absent. A file that is there but unreadable
+    is an error (:class:`PlaneError`).
+    """
+    if path is None or str(path) == "":
+        return None
+    path = Path(path)
+    if not path.is_file():
+        return None
+    return load_plane(path)
 
 
 # ---------------------------------------------------------------------------------------------

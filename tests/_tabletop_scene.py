@@ -24,3 +24,9 @@ def tabletop_capture(base: Path, **overrides) -> Path:
     if not (out / "gt" / "cameras.json").is_file():
         make_capture(out, settings)
     return out
+
+# the ChArUco mat capture (recon.marker): 8 views of 320 x 240, the mat's squares 0.05 scene
+# units (scale 0.1: the object ~0.19 units tall); ~20 s
+MAT_TEST = dict(n_views=8, width=320, height=240, spp=4, texture_size=128, table_texture_size=1024,
+                marker_square=0.5, scale=0.1, background=0.0)
+MAT_TEST_SQUARE_UNITS = 0.05

@@ -142,3 +142,68 @@ def test_initial_mesh_of_a_synthetic_capture(tmp_path_factory):
     # the mesh lives in the cameras' frame and [-1, 1]^3 holds it
     assert np.abs(mesh.v_pos).max() < 1.0
     assert len(load_cameras(capture / "gt" / "cameras.json")) == stats["views_with_masks"]
+
+
+def _on_table():
+    """A sphere cut flat at a quarter of its height, standing on the table z = 0, and 16 cameras
+    on two hand-held rings 20 and 50 degrees above the table (nothing from below)."""
+    from recon.support import SupportPlane
+
+    m = icosphere(4)
+    v = m.v_pos * 0.5
+    v[:, 2] = np.maximum(v[:, 2], -0.25)
+    v[:, 2] += 0.25  # the flat base on z = 0
+    obj = Mesh(v, m.t_pos_idx)
+    cams = []
+    for k, (elev, t) in enumerate([(e, t) for e in (20, 50) for t in np.linspace(0, 2 * np.pi, 8, endpoint=False)]):
+        e = np.radians(elev)
+        eye = 3.0 * np.array([np.cos(e) * np.cos(t + e), np.cos(e) * np.sin(t + e), np.sin(e)])
+        cams.append(Camera(f"images/{k:02d}.png", 96, 96, intrinsics(96, 96, 40), look_at(eye, [0, 0, 0.3])))
+    return obj, CameraSet(tuple(cams)), SupportPlane(np.array([0.0, 0.0, 1.0]), 0.0)
+
+
+def test_visual_hull_on_a_table_is_cut_at_the_plane_with_a_flat_base():
+    obj, cams, plane = _on_table()
+    masks = {c.stem: silhouette(obj, c) for c in cams}
+    s = rim.InitMeshSettings(resolution=64, target_faces=2000)
+    free, _ = rim.visual_hull_mesh(cams, masks, s)
+    # without the plane the silhouette cones reach far below the table
+    assert free.v_pos[:, 2].min() < -0.1
+    mesh, stats = rim.visual_hull_mesh(cams, masks, s, plane)
+    rim.check_closed_manifold(mesh)
+    z = mesh.v_pos[:, 2]
+    assert z.min() >= -1e-9  # nothing below the table
+    base = np.abs(z) < 1e-9
+    assert stats["plane"]["base_vertices"] == base.sum() > 30  # a flat base on the plane
+    # the base closes the mesh: its faces (all three vertices on the plane) cover the footprint
+    fb = base[mesh.t_pos_idx].all(1)
+    tri = mesh.v_pos[mesh.t_pos_idx[fb]]
+    area = 0.5 * np.abs(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])[:, 2]).sum()
+    true_disk = np.pi * (0.5**2 - 0.25**2)
+    assert 0.8 * true_disk < area < 1.6 * true_disk
+    r = metrics.chamfer(mesh, obj, n_samples=20_000)
+    r_free = metrics.chamfer(free, obj, n_samples=20_000)
+    assert r["accuracy"] < 0.03 and r["completeness"] < 0.02
+    assert r["accuracy"] < 0.5 * r_free["accuracy"]
+
+
+def test_run_init_mesh_reads_the_plane_file_and_keeps_the_void_without_one(tmp_path):
+    from recon.support import save_plane
+
+    obj, cams, plane = _on_table()
+    save_cameras(tmp_path / "cameras.json", cams)
+    for c in cams:
+        write_mask(tmp_path / "masks" / f"{c.stem}.png", silhouette(obj, c))
+    save_plane(tmp_path / "masks" / "plane.json", plane)
+    s = rim.InitMeshSettings(resolution=48, target_faces=1000)
+    st = rim.run_init_mesh(tmp_path / "cameras.json", tmp_path / "masks", tmp_path / "cut", s,
+                           plane_json=tmp_path / "masks" / "plane.json")
+    assert st["plane"]["cut"] and read_ply(tmp_path / "cut" / "mesh.ply").v_pos[:, 2].min() >= -1e-9
+    # no plane file (none found): today's hull, reaching below the table
+    st = rim.run_init_mesh(tmp_path / "cameras.json", tmp_path / "masks", tmp_path / "void", s,
+                           plane_json=tmp_path / "absent" / "plane.json")
+    assert st["plane"] is None and read_ply(tmp_path / "void" / "mesh.ply").v_pos[:, 2].min() < -0.1
+    (tmp_path / "masks" / "plane.json").write_text("{}")
+    with pytest.raises(rim.InitMeshError, match="plane.json"):
+        rim.run_init_mesh(tmp_path / "cameras.json", tmp_path / "masks", tmp_path / "bad", s,
+                          plane_json=tmp_path / "masks" / "plane.json")

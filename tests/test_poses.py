@@ -83,6 +83,30 @@ def test_given_cameras_with_wrong_size_fail_cleanly(tmp_path):
         rp.run_poses(lin, tmp_path / "poses", given_cameras=given)
 
 
+def test_given_cameras_of_larger_photos_follow_the_reduced_images(tmp_path):
+    """Photos that linearize reduced (linearize.max_size): the given cameras' K scales per axis
+    to the linear images' size, and a world point still projects onto the same image position."""
+    lin = tmp_path / "linear"
+    cams = _tiny_views(lin, w=16, h=12)
+    big = CameraSet(tuple(c.scaled(4.0) for c in cams), light_intensity=2.5)  # the photos: 64 x 48
+    given = tmp_path / "capture" / "cameras.json"
+    save_cameras(given, big)
+    out = tmp_path / "poses"
+    rp.run_poses(lin, out, given_cameras=given)
+    got = load_cameras(out / "cameras.json")
+    assert got.light_intensity == 2.5
+    p = np.array([[0.1, -0.2, 0.3], [0.0, 0.0, 0.0]])
+    for c, b in zip(got, big, strict=True):
+        assert (c.width, c.height) == (16, 12)
+        np.testing.assert_allclose(c.project(p)[0], b.project(p)[0] / 4.0, rtol=1e-12)
+        np.testing.assert_array_equal(c.world_to_camera, b.world_to_camera)
+    # a size that is not the photo reduced is still refused
+    odd = CameraSet(tuple(Camera(c.image, 64, 40, c.K, c.world_to_camera) for c in big))
+    save_cameras(given, odd)
+    with pytest.raises(rp.PoseError, match="is 64x40 in cameras.json but the image is 16x12"):
+        rp.run_poses(lin, tmp_path / "poses2", given_cameras=given)
+
+
 def _capture_settings(capture, **extra):
     """The poses settings a workflow run builds for ``capture`` (preset + capture.yaml)."""
     return build_settings(rp.PoseSettings, {**stage_settings("poses", "draft", capture), **extra})
@@ -437,6 +461,69 @@ def test_snakemake_skips_sfm_and_init_mesh_when_given(repo_root, tmp_path):
     res = tmp_path / "results"
     jobs = {name: _planned_jobs(repo_root, caps, res, f"{res}/{name}/uv/mesh.obj")
             for name in ("given", "cams_only", "sfm")}
-    assert jobs["given"] == {"uv"}
-    assert jobs["cams_only"] == {"linearize", "masks", "poses", "init_mesh", "uv"}
-    assert jobs["sfm"] == {"linearize", "masks", "poses", "init_mesh", "uv"}
+    # (check: the whole capture validated before any stage, recon.validate)
+    assert jobs["given"] == {"check", "uv"}
+    assert jobs["cams_only"] == {"check", "linearize", "masks", "poses", "init_mesh", "uv"}
+    assert jobs["sfm"] == {"check", "linearize", "masks", "poses", "init_mesh", "uv"}
+
+
+def test_sfm_support_plane_pass_replaces_the_masks_of_a_tabletop_capture(tmp_path, tmp_path_factory):
+    """After SfM (issue 15): a support plane in the sparse points makes the poses stage replace
+    the masks stage's undistorted masks (the lit table included) by the tabletop masks and write
+    plane.json; the capture's own masks still win. Here the stage folder is built from the
+    tabletop test capture (true cameras, points triangulated in the views) instead of COLMAP."""
+    from _tabletop_scene import tabletop_capture
+
+    from recon.masks import derive_mask
+    from recon.poses.stage import _support_plane_masks, _write_points
+    from recon.segment import triangulate_points
+    from recon.support import load_plane
+
+    cap = tabletop_capture(tmp_path_factory.getbasetemp())
+    cams = load_cameras(cap / "gt" / "cameras.json")
+    stage = tmp_path / "poses"
+    save_cameras(stage / "cameras.json", cams)
+    images = [read_exr(cap / c.image) for c in cams]
+    pts = triangulate_points(images, cams)
+    _write_points(stage / "points.ply", pts, np.ones(len(pts), bool))
+    flash = {}
+    for c, img in zip(cams, images, strict=True):
+        write_exr(stage / "undistorted" / f"{c.stem}.exr", img)
+        flash[c.stem] = derive_mask(img)[0]  # today's masks: the object and the lit table
+        write_mask(stage / "undistorted" / "masks" / f"{c.stem}.png", flash[c.stem])
+    # one view's mask is the capture's own (masks.json of the masks stage says so): it stays
+    own = cams.frames[3].stem
+    masks_dir = tmp_path / "masks"
+    masks_dir.mkdir()
+    (masks_dir / "masks.json").write_text(json.dumps({"views": {own: {"source": "given"}}}))
+    info = _support_plane_masks(stage, masks_dir)
+    assert info["found"]
+    plane, true = load_plane(stage / "plane.json"), load_plane(cap / "gt" / "plane.json")
+    assert np.degrees(np.arccos(plane.normal @ true.normal)) < 1.0
+    ious = {}
+    for c in cams:
+        m = read_mask(stage / "undistorted" / "masks" / f"{c.stem}.png")
+        g = read_mask(cap / "gt" / "masks" / f"{c.stem}.png")
+        ious[c.stem] = (m & g).sum() / (m | g).sum()
+    np.testing.assert_array_equal(read_mask(stage / "undistorted" / "masks" / f"{own}.png"), flash[own])
+    del ious[own]
+    assert np.mean(list(ious.values())) > 0.95, ious
+    assert not (stage / "tabletop").exists() and (stage / "masks.json").is_file()
+    # the frame fitted again to the object alone: z along the table's normal, the object's box
+    # centred and filling [-0.9, 0.9]; the cameras see the same pixels (a similarity of the world)
+    from recon.poses.stage import _object_frame_on_plane
+
+    before = load_cameras(stage / "cameras.json")
+    refit = _object_frame_on_plane(stage, 0.1)
+    after = load_cameras(stage / "cameras.json")
+    moved = load_plane(stage / "plane.json")
+    np.testing.assert_allclose(moved.normal, [0, 0, 1], atol=1e-9)
+    box = json.loads((stage / "plane.json").read_text())["object_bbox"]
+    lo, hi = np.asarray(box["lo"]), np.asarray(box["hi"])
+    assert np.max(hi - lo) == pytest.approx(1.8) and np.allclose(lo + hi, 0, atol=1e-9)
+    x = read_obj(cap / "gt" / "mesh.obj").v_pos[:50]
+    for b, a in zip(before.frames[:3], after.frames[:3], strict=True):
+        pb, pa = b.K @ (b.world_to_camera[:3, :3] @ x.T + b.world_to_camera[:3, 3:]), \
+            a.K @ (a.world_to_camera[:3, :3] @ refit.apply(x).T + a.world_to_camera[:3, 3:])
+        np.testing.assert_allclose(pb[:2] / pb[2], pa[:2] / pa[2], atol=1e-6)
+    assert abs(moved.height(refit.apply(x[:1]))[0] - plane.height(x[:1])[0] * refit.scale) < 1e-9

@@ -202,12 +202,12 @@ def test_given_masks_win(mug, tmp_path):
     with pytest.raises(sg.MaskError, match=r"0003\.png: mask is 5x5"):
         sg.run_tabletop_masks(mug / "images", mug / "gt" / "cameras.json", tmp_path / "m", given_dir=given)
     (given / f"{cams.frames[3].stem}.png").unlink()
-    # every view given: nothing is derived, no plane is looked for
+    # every view given: nothing is derived, but the plane is still found (the later stages use it)
     for cam in cams:
         write_mask(given / f"{cam.stem}.png", box)
     summary = sg.run_tabletop_masks(mug / "images", mug / "gt" / "cameras.json", tmp_path / "m", given_dir=given)
-    assert {v["source"] for v in summary["views"].values()} == {"given"}
-    assert not summary["plane"]["found"]
+    assert {v["source"] for v in summary["views"].values()} == {"given"} and summary["method"] == "given"
+    assert summary["plane"]["found"] and (tmp_path / "m" / "plane.json").is_file()
     np.testing.assert_array_equal(read_mask(tmp_path / "m" / f"{cams.frames[2].stem}.png"), box)
 
 

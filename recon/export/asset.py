@@ -36,6 +36,8 @@ from recon.io.atomic import atomic_dir
 from recon.io.cameras import load_cameras
 from recon.io.images import ImageError, linear_to_srgb, read_texture_map, write_png
 from recon.io.mesh import Mesh, MeshError, read_obj
+from recon.marker import MarkerBoard, MarkerError, marker_scale_from_dirs
+from recon.support import PlaneError, plane_if_found
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +48,7 @@ __all__ = [
     "load_material",
     "load_model",
     "up_rotation",
+    "rotation_to_y",
     "object_to_world",
     "write_textures",
     "export_asset",
@@ -72,11 +75,25 @@ class ExportSettings:
         (1 = all views agree) for it to define up; below it the identity is used.
     meters_per_unit : float
         Metres per cameras.json unit, applied as a uniform scale in the root transform.
+    object_height_m : float
+        A known length: the object's height in metres (0 = not known). With a support plane, the
+        height of the mesh above the plane; without, its extent along the up axis. It sets the
+        scale (and wins over ``meters_per_unit``; a scale measured from a marker mat in the
+        mat wins over both).
+    marker_square_m : float
+        The side of a square of the ChArUco mat in the photos, in metres (0 = no mat): the scale
+        comes from the mat (:mod:`recon.marker`; the board OpenCV's 5 x 7 ChArUco, DICT_4X4_50).
+
+    An object standing on a table (``plane.json``, :mod:`recon.support`): whatever ``up`` says,
+    the plane's normal becomes +Y, the plane y = 0 (the object's base stands on the ground)
+    and the object is centred over the origin (its bounding box's middle in x and z).
     """
 
     up: str = "cameras"
     min_up_agreement: float = 0.5
     meters_per_unit: float = 1.0
+    object_height_m: float = 0.0
+    marker_square_m: float = 0.0
 
     def __post_init__(self):
         if self.up not in ("cameras", "identity"):
@@ -85,6 +102,12 @@ class ExportSettings:
             raise ValueError(f"min_up_agreement must be in [0, 1], got {self.min_up_agreement}")
         if not (math.isfinite(self.meters_per_unit) and self.meters_per_unit > 0):
             raise ValueError(f"meters_per_unit must be a positive number, got {self.meters_per_unit}")
+        if not (math.isfinite(self.marker_square_m) and self.marker_square_m >= 0):
+            raise ValueError(f"marker_square_m must be a length in metres >= 0 (0: no mat), got "
+                             f"{self.marker_square_m}")
+        if not (math.isfinite(self.object_height_m) and self.object_height_m >= 0):
+            raise ValueError(f"object_height_m must be a length in metres >= 0 (0: unknown), got "
+                             f"{self.object_height_m}")
 
 
 @dataclass
@@ -167,7 +190,13 @@ def up_rotation(cameras, min_agreement: float = 0.5) -> np.ndarray:
         log.warning("camera up vectors disagree (mean length %.3f < %.3f); keeping the "
                     "cameras.json frame, its +Y declared up", agreement, min_agreement)
         return np.eye(3)
-    u = mean / agreement
+    return rotation_to_y(mean / agreement)
+
+
+def rotation_to_y(u) -> np.ndarray:
+    """(3, 3) the smallest rotation taking the unit vector ``u`` to +Y."""
+    u = np.asarray(u, dtype=np.float64)
+    u = u / np.linalg.norm(u)
     y = np.array([0.0, 1.0, 0.0])
     c = float(u @ y)
     if c < -1.0 + 1e-12:  # upside down: half a turn about x
@@ -177,8 +206,58 @@ def up_rotation(cameras, min_agreement: float = 0.5) -> np.ndarray:
     return np.eye(3) + vx + vx @ vx / (1.0 + c)
 
 
-def object_to_world(settings: ExportSettings, cameras_json=None) -> np.ndarray:
-    """(4, 4) transform from the cameras.json frame to the exported +Y-up metre frame."""
+def object_to_world(settings: ExportSettings, cameras_json=None, plane=None, mesh: Mesh | None = None,
+                    info: dict | None = None, marker_scale: float | None = None) -> np.ndarray:
+    """(4, 4) transform from the cameras.json frame to the exported +Y-up metre frame.
+
+    With a support ``plane`` (:class:`recon.support.SupportPlane`) and the ``mesh``: its normal on
+    +Y, the plane at y = 0, the mesh's bounding box centred in x and z. ``marker_scale``: metres
+    per unit measured from a marker mat (the plane file's ``meters_per_unit``). ``info`` (a dict)
+    receives how the frame and the scale were chosen (``frame``, ``scale_source``,
+    ``meters_per_unit``).
+    """
+    info = {} if info is None else info
+    if plane is not None:
+        if mesh is None:
+            raise ValueError("object_to_world: a support plane needs the mesh (to centre it)")
+        R = rotation_to_y(plane.normal)
+        v = mesh.v_pos @ R.T
+        lo, hi = v.min(0), v.max(0)
+        t = np.array([-(lo[0] + hi[0]) / 2, plane.offset, -(lo[2] + hi[2]) / 2])  # y = height above the plane
+        height = float(hi[1] + plane.offset)
+        info["frame"] = "support plane: its normal +Y, the plane at y = 0, centred in x and z"
+    else:
+        R = _up_from_cameras(settings, cameras_json)
+        t = np.zeros(3)
+        height = float(np.ptp((mesh.v_pos @ R.T)[:, 1])) if mesh is not None else 0.0
+        info["frame"] = f"up = {settings.up}"
+    scale = _scale(settings, marker_scale, height, info)
+    T = np.eye(4)
+    T[:3, :3] = scale * R
+    T[:3, 3] = scale * t
+    return T
+
+
+def _scale(settings: ExportSettings, marker_scale: float | None, height: float, info: dict) -> float:
+    """Metres per cameras.json unit: the marker mat's, the known object height, the
+    ``meters_per_unit`` setting, in that order; a note in ``info`` says which."""
+    if marker_scale is not None:
+        info.update(scale_source="marker mat", meters_per_unit=float(marker_scale))
+    elif settings.object_height_m > 0:
+        if not height > 0:
+            raise ExportError("export.object_height_m is set but the mesh has no height to scale")
+        info.update(scale_source=f"object height {settings.object_height_m} m (export.object_height_m)",
+                    meters_per_unit=settings.object_height_m / height)
+    elif settings.meters_per_unit != 1.0:
+        info.update(scale_source="export.meters_per_unit", meters_per_unit=settings.meters_per_unit)
+    else:
+        info.update(scale_source="unknown: unitless (1 unit = 1 m); give export.object_height_m in capture.yaml "
+                                 "or photograph the object on a marker mat", meters_per_unit=1.0)
+        info["scale_warning"] = "the asset's scale is unknown"
+    return float(info["meters_per_unit"])
+
+
+def _up_from_cameras(settings: ExportSettings, cameras_json) -> np.ndarray:
     R = np.eye(3)
     if settings.up == "cameras":
         if cameras_json is None:
@@ -189,9 +268,7 @@ def object_to_world(settings: ExportSettings, cameras_json=None) -> np.ndarray:
             except ValueError as e:
                 raise ExportError(str(e)) from e
             R = up_rotation(cams, settings.min_up_agreement)
-    T = np.eye(4)
-    T[:3, :3] = settings.meters_per_unit * R
-    return T
+    return R
 
 
 # ---- Textures ----
@@ -230,6 +307,8 @@ def export_asset(
     out_dir: str | os.PathLike,
     settings: ExportSettings = ExportSettings(),
     cameras_json: str | os.PathLike | None = None,
+    plane_json: str | os.PathLike | None = None,
+    views_dir: str | os.PathLike | None = None,
 ) -> dict[str, Path]:
     """Write ``out_dir/asset.glb``, ``asset.usdz``, ``asset.usda`` and the PNG textures.
 
@@ -246,18 +325,45 @@ def export_asset(
         :class:`ExportSettings`.
     cameras_json
         ``poses/cameras.json``, for the up axis (``settings.up = "cameras"``).
+    plane_json
+        The support plane (``plane.json`` beside the masks; absent when none was found): the
+        asset stands on it (:func:`object_to_world`).
+    views_dir
+        The pinhole views of ``cameras_json`` (``<stem>.exr``), where ``settings.marker_square_m``
+        asks for the scale of a marker mat in them.
 
     Returns
     -------
     dict of the written files: ``glb``, ``usdz``, ``usda`` and the texture names.
     """
     mesh, material = load_model(mesh_obj, diffuse_exr, specular_exr, roughness_exr)
-    T = object_to_world(settings, cameras_json)
+    try:
+        plane = plane_if_found(plane_json)
+    except PlaneError as e:
+        raise ExportError(f"{e}; rerun the masks stage") from e
+    how: dict = {}
+    marker = None
+    if settings.marker_square_m > 0:
+        if views_dir is None or cameras_json is None:
+            raise ExportError("export.marker_square_m is set but the export stage was given no views and cameras "
+                              "to find the mat in")
+        try:
+            marker, marker_info = marker_scale_from_dirs(views_dir, cameras_json,
+                                                         MarkerBoard(settings.marker_square_m))
+        except MarkerError as e:
+            raise ExportError(f"{views_dir}: {e}") from e
+        how["marker"] = marker_info
+    T = object_to_world(settings, cameras_json, plane, mesh, how, marker_scale=marker)
+    if "scale_warning" in how:
+        log.warning("%s: %s", how["scale_warning"], how["scale_source"])
     extras = {
         "object_to_world": [float(x) for x in T.ravel()],  # row-major 4x4
         "frame": "vertex data in the cameras.json frame; object_to_world maps it to +Y up, metres",
         "up": settings.up,
-        "meters_per_unit": settings.meters_per_unit,
+        "placement": how["frame"],
+        "meters_per_unit": how["meters_per_unit"],
+        "scale_source": how["scale_source"],
+        **({"marker_mat": how["marker"]} if "marker" in how else {}),
     }
     out_dir = Path(out_dir)
     log.info("exporting %s (%d faces, maps %s / %s / %s) to %s", mesh_obj, len(mesh.t_pos_idx),

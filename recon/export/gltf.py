@@ -95,7 +95,8 @@ def write_glb(
         PNG paths under the keys ``diffuse``, ``specular``, ``metallic_roughness``
         (:func:`recon.export.asset.write_textures`); embedded as they are.
     object_to_world : (4, 4) float
-        Uniform scale times rotation; becomes the node's ``scale`` and ``rotation``.
+        Uniform scale times rotation, plus a translation; becomes the node's ``scale``,
+        ``rotation`` and ``translation``.
     extras : dict, optional
         Stored as ``asset.extras["recon"]``.
     """
@@ -143,6 +144,8 @@ def write_glb(
         node.rotation = [float(x) for x in quat]
     if abs(scale - 1.0) > 1e-12:
         node.scale = [scale] * 3
+    if np.any(T[:3, 3] != 0):
+        node.translation = [float(x) for x in T[:3, 3]]
 
     material = gl.Material(
         name="material",

@@ -44,6 +44,7 @@ from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, to
 from recon.optimize.settings import OptimizeSettings, StageSettings
 from recon.optimize.views import Views, ViewSet, pixel_footprint
 from recon.render import CollocatedRenderer, RenderSettings
+from recon.support import PlaneError, SupportPlane, plane_if_found
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +97,7 @@ class _Run:
     light: float
     ckpt_dir: Path
     fingerprint: str
+    plane: SupportPlane | None = None  # the table the object stands on: no vertex goes below it
 
     def lr_geometry(self, factor: float = 1.0) -> float:
         """Adam's geometry rate: ``lr_geometry`` is a fraction of the bounding box per step."""
@@ -321,6 +323,7 @@ def _iteration(st: _Stage, it: int, run: _Run, timer: _Timer) -> dict:
     # ---- the proposed positions: accepted now (no guard) or checked in the background ----
     g = st.geom.detach().numpy()
     v_new = st.ls.solve_np(g) if st.ls is not None else g.copy()
+    v_new, n_below = _keep_above_plane(st, run.plane, v_new)
     rec = {
         "stage": st.index,
         "iteration": it,
@@ -331,6 +334,7 @@ def _iteration(st: _Stage, it: int, run: _Run, timer: _Timer) -> dict:
         "guard_frozen": 0,
         "guard_reverted": False,
         "t_guard_check": 0.0,
+        "plane_projected": n_below,
     }
     if st.guard is None:
         st.mesh.v_pos = v_new
@@ -342,6 +346,21 @@ def _iteration(st: _Stage, it: int, run: _Run, timer: _Timer) -> dict:
         timer.add(phase, times[phase])
         rec[f"t_{phase}"] = times[phase]
     return rec
+
+
+def _keep_above_plane(st: _Stage, plane: SupportPlane | None, v: np.ndarray) -> tuple[np.ndarray, int]:
+    """The support plane's constraint, a projection after each step: vertices a step took below
+    the table go back onto it (along its normal) and the geometry parameter follows them, so
+    the surface never crosses the plane. The base (on the plane, facing it) is never seen by a
+    camera above the table, so it gets no gradient from the images; only the priors move it."""
+    if plane is None:
+        return v, 0
+    v, below = plane.clamp_above(v)
+    n = int(below.sum())
+    if n:
+        with torch.no_grad():
+            st.geom.copy_(torch.from_numpy(st.ls.M @ v if st.ls is not None else v))
+    return v, n
 
 
 def iteration_views(seed: int, stage: int, iteration: int, n_views: int, per_iteration: int) -> np.ndarray:
@@ -360,6 +379,7 @@ def optimize_capture(
     settings: OptimizeSettings | None = None,
     progress: bool = True,
     callback: Callable[[dict], None] | None = None,
+    plane_json: str | os.PathLike | None = None,
 ) -> dict:
     """Optimize shape and SVBRDF maps from flash photos; write the optimize stage's outputs.
 
@@ -376,6 +396,8 @@ def optimize_capture(
     settings : OptimizeSettings (None = the defaults)
     progress : show a tqdm bar (loss and ETA).
     callback : called after every iteration with its log record (dict).
+    plane_json : the support plane (``plane.json`` beside the masks; absent when none was found):
+        no vertex goes below it (:func:`_keep_above_plane`).
 
     Returns
     -------
@@ -398,7 +420,17 @@ def optimize_capture(
     if not bbox_scale > 0:
         raise OptimizeError(f"{init_mesh_obj}: the initial mesh has an empty bounding box")
     weights = objective.weights(settings)
-    files = [cameras_json, init_mesh_obj, *images, *(masks or []), *(saturation_masks or [])]
+    try:
+        plane = plane_if_found(plane_json)
+    except PlaneError as e:
+        raise OptimizeError(f"{e}; rerun the masks stage") from e
+    if plane is not None:
+        log.info("support plane %s: the surface is kept above it", plane_json)
+        if np.any(plane.height(init.v_pos) < -0.01 * bbox_scale):
+            log.warning("%s: the initial mesh reaches %.3g below the support plane (%s); those vertices are "
+                        "moved onto it", init_mesh_obj, -plane.height(init.v_pos).min(), plane_json)
+    files = [cameras_json, init_mesh_obj, *images, *(masks or []), *(saturation_masks or []),
+             plane_json if plane is not None else None]
     fp = ckpt.fingerprint(settings.to_dict(), [str(f) if f is not None else None for f in files])
     tone_scale = views.median_foreground
     light = views.light_intensity
@@ -423,7 +455,7 @@ def optimize_capture(
 
         bar = tqdm(total=total_iters, initial=done_iters, desc="optimize", unit="it", dynamic_ncols=True)
 
-    run = _Run(settings, tuple(stages), views, heldout, bbox_scale, weights, tone_scale, light, ckpt_dir, fp)
+    run = _Run(settings, tuple(stages), views, heldout, bbox_scale, weights, tone_scale, light, ckpt_dir, fp, plane)
     prog = _Progress(timer, records, stage_infos, bar=bar, callback=callback,
                      executor=ThreadPoolExecutor(max_workers=1, thread_name_prefix="surface-guard"))
     try:
@@ -505,6 +537,8 @@ def _run_stages(run: _Run, prog: _Progress, init: Mesh, state: dict | None, star
                 mesh, maps, covered = _initial_stage_mesh(init, settings, stage, h)
             else:
                 mesh, maps, covered = remesh_and_rebake(prev_mesh, prev_maps, h, int(stage.texture_size))
+            if run.plane is not None:  # remeshing may leave base vertices a hair below the table
+                mesh.v_pos = run.plane.clamp_above(mesh.v_pos)[0]
             t1 = time.perf_counter()
             timer.add("geometry", t1 - t0)
             st = _build_stage(run, si, stage, h, mesh, mesh.v_pos.copy(), covered, maps)
@@ -600,6 +634,7 @@ def optimize_from_dirs(
     out_dir: str | os.PathLike,
     settings: OptimizeSettings | None = None,
     progress: bool = True,
+    plane_json: str | os.PathLike | None = None,
 ) -> dict:
     """:func:`optimize_capture` over every view of ``cameras_json`` found in the stage folders.
 
@@ -624,7 +659,7 @@ def optimize_from_dirs(
         sat = views_dir / f"{c.stem}.sat.png"
         sats.append(sat if sat.is_file() else None)
     return optimize_capture(images, masks if masks_dir is not None else None, sats, cameras_json, init_mesh_obj,
-                            out_dir, settings, progress)
+                            out_dir, settings, progress, plane_json=plane_json)
 
 
 def _save(run: _Run, prog: _Progress, st: _Stage, next_it: int, done: bool) -> None:

@@ -22,6 +22,9 @@ from recon.poses.inputs import focal_prior, image_names, linear_stems, read_mask
 from recon.poses.mapping import map_views, refine, rescale_model, silhouette_consistency, unregistered_reasons
 from recon.poses.settings import PoseError, PoseSettings
 from recon.poses.undistort import pinhole_camera, undistort_maps, undistort_view
+from recon.segment import read_points_ply, run_tabletop_masks
+from recon.metrics import Similarity
+from recon.support import SupportPlane, fit_support_plane, load_plane, save_plane
 
 log = logging.getLogger(__name__)
 
@@ -95,13 +98,17 @@ def _passthrough(given: Path, linear_dir: Path, masks_dir: Path | None, tmp: Pat
     except CameraError as e:
         raise PoseError(f"{e} (fix the capture's cameras.json, or delete it to run SfM)") from e
     stems = set(linear_stems(linear_dir))
+    reduced = {}
     for c in cams:
         exr = linear_dir / f"{c.stem}.exr"
         if c.stem not in stems:
             raise PoseError(f"{given}: camera for '{c.image}' but no linear image {exr}; the names must match images/")
         h, w = read_exr(exr).shape[:2]
         if (w, h) != (c.width, c.height):
-            raise PoseError(f"{given}: '{c.image}' is {c.width}x{c.height} in cameras.json but the image is {w}x{h}")
+            s = max(w, h) / max(c.width, c.height)
+            if not (s < 1 and (max(1, round(c.width * s)), max(1, round(c.height * s))) == (w, h)):
+                raise PoseError(f"{given}: '{c.image}' is {c.width}x{c.height} in cameras.json but the image is {w}x{h}")
+            reduced[c.image] = (w, h)  # linearize reduced the photo (linearize.max_size)
         _link_or_copy(exr, tmp / "undistorted" / f"{c.stem}.exr")
         sat = linear_dir / f"{c.stem}.sat.png"
         if sat.is_file():
@@ -109,11 +116,30 @@ def _passthrough(given: Path, linear_dir: Path, masks_dir: Path | None, tmp: Pat
         if masks_dir is not None and (Path(masks_dir) / f"{c.stem}.png").is_file():
             _link_or_copy(Path(masks_dir) / f"{c.stem}.png", tmp / "undistorted" / "masks" / f"{c.stem}.png")
     light = _copy_given_cameras(given, tmp / "cameras.json", cams.light_intensity, light_intensity)
+    if reduced:
+        _reduce_cameras(tmp / "cameras.json", reduced)
+        log.info("%s: %d camera(s) scaled to the linear images' size (linearize.max_size)", given, len(reduced))
     missing = sorted(stems - {c.stem for c in cams})
     if missing:
         log.warning("views without a camera in %s are not used: %s", given, ", ".join(missing))
     return {"source": "given", "cameras": str(given), "registered": len(cams),
             "unregistered": {m: "no camera in cameras.json" for m in missing}, "light_intensity": light}
+
+
+def _reduce_cameras(path: Path, sizes: dict[str, tuple[int, int]]) -> None:
+    """Rewrite the frames of ``path`` named in ``sizes`` (image -> (w, h)) for their images
+    reduced to that size: image edges stay at 0 and W (area resampling), so K's rows scale by
+    w / W and h / H (DESIGN section 1's pixel convention)."""
+    data = json.loads(path.read_text())
+    for frame in data["frames"]:
+        if frame["image"] not in sizes:
+            continue
+        w, h = sizes[frame["image"]]
+        K = np.asarray(frame["K"], dtype=np.float64)
+        K[0] *= w / float(frame["width"])
+        K[1] *= h / float(frame["height"])
+        frame.update(width=w, height=h, K=K.tolist())
+    path.write_text(json.dumps(data, indent=1))
 
 
 def _copy_given_cameras(given: Path, dest: Path, given_intensity: float, light_intensity: float | None) -> float:
@@ -253,6 +279,23 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
              "note": "x_object = scale * rotation @ x_colmap + translation; sparse/ is in COLMAP's frame"}
     (tmp / "frame.json").write_text(json.dumps(frame, indent=1))
 
+    t0 = time.perf_counter()
+    support = _support_plane_masks(tmp, masks_dir)
+    if support.get("found"):
+        # the frame was fitted to the masks stage's masks, which hold the lit table: fit it again
+        # to the object alone (it fills [-1, 1]^3, z along the table's normal), as in the void
+        refit = _object_frame_on_plane(tmp, settings.margin)
+        if refit is not None:
+            sim = Similarity(refit.scale * sim.scale, refit.rotation @ sim.rotation,
+                             refit.scale * refit.rotation @ sim.translation + refit.translation)
+            cams = load_cameras(tmp / "cameras.json")
+            cams = CameraSet(cams.frames, cams.light_intensity, {"colmap_to_object": sim.matrix.tolist()})
+            save_cameras(tmp / "cameras.json", cams)
+            frame["colmap_to_object"] = sim.to_dict()
+            frame["refit_on_support_plane"] = refit.to_dict()
+            (tmp / "frame.json").write_text(json.dumps(frame, indent=1))
+    timings["support_plane_s"] = time.perf_counter() - t0
+
     mre = float(rec.compute_mean_reprojection_error())
     sil = silhouette_consistency(rec, masks)
     if sil is not None and sil < settings.min_silhouette_consistency:
@@ -282,6 +325,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
         "chosen_trial": trial,
         "refinement": refinement,
         "frame": frame,
+        "support_plane": support,
         "light_intensity": light_intensity,
         "timings": timings,
         "settings": asdict(settings),
@@ -290,6 +334,76 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
              len(registered), n, mre, rec.num_points3D(), in_mask.sum(),
              ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))
     return diag
+
+
+def _support_plane_masks(tmp: Path, masks_dir: Path | None) -> dict:
+    """An object standing on a table (issue 15): when the SfM points hold a support plane
+    (:func:`recon.support.fit_support_plane`), the masks in ``undistorted/masks`` are replaced by
+    the tabletop masks (:func:`recon.segment.run_tabletop_masks` on the undistorted views, the
+    capture's own masks still winning) and ``plane.json`` is written beside ``cameras.json``;
+    otherwise (an object in the void) the masks stage's masks stay, with a note in the log."""
+    cams = load_cameras(tmp / "cameras.json")
+    plane, info = fit_support_plane(read_points_ply(tmp / "points.ply"), cams)
+    if plane is None:
+        log.info("no support plane in the SfM points (%s): the masks stage's masks are kept", info["reason"])
+        return {k: v for k, v in info.items() if k in ("found", "reason")}
+    given = None
+    if masks_dir is not None and (masks_dir / "masks.json").is_file():
+        views = json.loads((masks_dir / "masks.json").read_text()).get("views", {})
+        given = {s for s, v in views.items() if v.get("source") == "given"}
+    und_masks = tmp / "undistorted" / "masks"
+    summary = run_tabletop_masks(tmp / "undistorted", tmp / "cameras.json", tmp / "tabletop",
+                                 points=tmp / "points.ply", given_dir=und_masks if und_masks.is_dir() else None,
+                                 given_stems=given or set())
+    if not (tmp / "tabletop" / "plane.json").is_file():  # the same points, the same plane: not expected
+        shutil.rmtree(tmp / "tabletop")
+        return {"found": False, "reason": summary["plane"].get("reason")}
+    und_masks.mkdir(parents=True, exist_ok=True)
+    for c in cams:
+        os.replace(tmp / "tabletop" / f"{c.stem}.png", und_masks / f"{c.stem}.png")
+    os.replace(tmp / "tabletop" / "plane.json", tmp / "plane.json")
+    os.replace(tmp / "tabletop" / "masks.json", tmp / "masks.json")
+    shutil.rmtree(tmp / "tabletop")
+    log.info("support plane found in the SfM points: tabletop masks in undistorted/masks, plane.json written")
+    return {k: v for k, v in summary["plane"].items() if not isinstance(v, (list, dict)) or k == "camera_elevation_deg"}
+
+
+def _object_frame_on_plane(tmp: Path, margin: float) -> Similarity | None:
+    """After the tabletop masks: the similarity from the stage's frame to one where the object
+    alone (the box of its hull in ``plane.json``'s ``object_bbox``) is centred and fills
+    [-(1 - margin), 1 - margin]^3, z along the plane's normal; ``cameras.json``, ``points.ply``
+    and ``plane.json`` are rewritten in it. None (nothing changed) without an object box."""
+    data = json.loads((tmp / "plane.json").read_text())
+    if "object_bbox" not in data:
+        return None
+    plane = load_plane(tmp / "plane.json")
+    lo, hi = np.asarray(data["object_bbox"]["lo"], float), np.asarray(data["object_bbox"]["hi"], float)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    n = plane.normal
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(a, n)
+    e1 /= np.linalg.norm(e1)
+    R = np.stack([e1, np.cross(n, e1), n])  # rows: x, y, z = the plane's normal
+    q = corners @ R.T
+    qlo, qhi = q.min(0), q.max(0)
+    extent = float(np.max(qhi - qlo))
+    if not extent > 0:
+        return None
+    s = 2.0 * (1.0 - margin) / extent
+    refit = Similarity(s, R, -s * 0.5 * (qlo + qhi))
+    cams = load_cameras(tmp / "cameras.json")
+    save_cameras(tmp / "cameras.json", rotate_cameras(cams, refit))
+    lines = (tmp / "points.ply").read_text().splitlines()
+    start = lines.index("end_header") + 1
+    rows = np.array([[float(x) for x in ln.split()] for ln in lines[start:]]).reshape(-1, 4)
+    _write_points(tmp / "points.ply", refit.apply(rows[:, :3]) if len(rows) else rows[:, :3],
+                  rows[:, 3].astype(bool))
+    moved = SupportPlane.through(refit.apply(plane.point[None])[0], R @ n)
+    new_lo, new_hi = refit.apply(corners).min(0), refit.apply(corners).max(0)
+    extra = {k: v for k, v in data.items() if k not in ("normal", "offset", "point", "convention", "object_bbox")}
+    save_plane(tmp / "plane.json", moved, **extra, object_bbox={"lo": new_lo.tolist(), "hi": new_hi.tolist()})
+    log.info("object frame fitted again to the object standing on the table (scale x%.3g)", s)
+    return refit
 
 
 def _write_points(path: Path, xyz: np.ndarray, flag: np.ndarray) -> None:

@@ -263,11 +263,15 @@ def make_report(
     }
     if opt_stages:
         metrics["optimize"]["stages"] = opt_stages
+    metrics["asset"] = asset_frame(glb)
     metrics["light_intensity"] = light
     metrics["settings"] = dataclasses.asdict(settings)
 
     page = page_html.Page(capture=capture, preset=preset, material_model=material, material_selection=selection,
                           imaging_selection=imaging)
+    if metrics["asset"].get("scale_warning"):
+        page.notes.append(f"Asset scale: {metrics['asset']['scale_source']}.")
+        log.warning("the asset's scale is unknown: %s", metrics["asset"]["scale_source"])
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as tmp:
         # ---- 3D view ----
@@ -353,6 +357,21 @@ def make_report(
         (tmp / "index.html").write_text(page_html.render_page(page), encoding="utf-8")
     log.info("report written to %s in %.1f s", out_dir, time.perf_counter() - t0)
     return metrics
+
+
+def asset_frame(glb) -> dict:
+    """How the export stage placed and scaled the asset (its ``asset.extras.recon``: placement,
+    scale source, metres per unit); ``scale_warning`` when the scale is unknown."""
+    import pygltflib
+
+    try:
+        extras = pygltflib.GLTF2().load(str(glb)).asset.extras or {}
+    except Exception as e:  # noqa: BLE001 - a diagnostic: the report goes on without it
+        return {"error": f"{glb}: {e}"}
+    rec = extras.get("recon", {}) if isinstance(extras, dict) else {}
+    out = {k: rec.get(k) for k in ("placement", "scale_source", "meters_per_unit")}
+    out["scale_warning"] = isinstance(out["scale_source"], str) and out["scale_source"].startswith("unknown")
+    return out
 
 
 def _stage_rows(opt_stages: list[dict]) -> tuple[list[str], list[list]]:

@@ -27,6 +27,9 @@ Fibonacci sphere around it (some from below). ``scene="tabletop"``: the object s
 textured table lit by the same flash, cameras on hand-held rings 15-60 degrees above the table,
 and the capture also holds ``gt/masks/<stem>.png`` (the object's true silhouettes) and
 ``gt/plane.json`` (the table, :mod:`recon.support`); see :mod:`recon.synth.tabletop`.
+``scene="tabletop_void"``: the tabletop scene's object (base cut flat) and cameras without the
+table or the backdrop: the same capture in the void, the peer benchmarks compare a tabletop
+capture with (``gt/plane.json`` says where the table would be).
 
 Everything is a function of the settings: the same settings give bit-identical files (except
 for DNG metadata a library may stamp; pidng stamps none).
@@ -50,7 +53,7 @@ from recon.io.images import linear_to_srgb, write_exr, write_mask, write_png
 from recon.io.mesh import write_obj
 from recon.synth.bake import bake, unwrap
 from recon.synth.materials import MaterialFields
-from recon.support import save_plane
+from recon.support import SupportPlane, save_plane
 from recon.synth.shapes import OBJECT_KINDS, flatten_base, make_object
 from recon.render.mitsuba_bsdf import render_reference
 from recon.synth import imaging as phone
@@ -60,7 +63,7 @@ from recon.synth.tabletop import TabletopScene, add_marker_mat, table_texture, t
 log = logging.getLogger(__name__)
 
 FORMATS = ("dng", "exr", "png16", "png8", "jpg")
-SCENES = ("void", "tabletop")
+SCENES = ("void", "tabletop", "tabletop_void")
 TABLETOP_FIELDS = ("scene", "elevation_range", "rings", "distance_jitter", "aim_jitter", "roll_jitter",
                    "table_half_size", "table_texture_size", "background", "background_distance",
                    "base_cut", "marker_square")
@@ -132,7 +135,8 @@ class SynthSettings:
         and the light intensity by ``scale**2``, so the photos are the same at every scale.
     scene : str
         ``void`` (the object alone, cameras all around) or ``tabletop`` (on a table, cameras
-        above it; the settings below apply to it, see :mod:`recon.synth.tabletop`).
+        above it; the settings below apply to it, see :mod:`recon.synth.tabletop`), or
+        ``tabletop_void`` (the tabletop object and cameras, no table: its peer in the void).
     elevation_range : (float, float)
         Tabletop: camera elevations above the table, degrees (seen from the object's center).
     rings : int
@@ -424,7 +428,7 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
 
     out_dir = Path(out_dir)
     s = settings
-    tabletop = s.scene == "tabletop"
+    tabletop = s.scene in ("tabletop", "tabletop_void")
     sensor = SensorModel()
     log.info("synth: %s object, level %d, %s scene", s.object, s.mesh_level, s.scene)
     mesh = make_object(s.object, s.mesh_level, s.seed)
@@ -438,9 +442,12 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
         mesh = dataclasses.replace(mesh, v_pos=mesh.v_pos * s.scale)
     roughness = np.clip(roughness, R_MIN, 1.0)
     textures = {"diffuse": diffuse, "specular": specular, "roughness": roughness}
-    scene, marker = None, None
-    if tabletop:
-
+    scene, marker, gt_plane = None, None, None
+    if s.scene == "tabletop_void":  # the tabletop object and cameras, rendered alone
+        lo, hi = mesh.bbox()
+        gt_plane = SupportPlane(np.array([0.0, 0.0, 1.0]), -float(lo[2]))
+        cams = tabletop_cameras(s, target=0.5 * (lo + hi) / s.scale)
+    elif tabletop:
         log.info("synth: table texture %d^2", s.table_texture_size)
         table_rgb = table_texture(s.table_texture_size, s.table_half_size, s.seed)
         if s.marker_square > 0:
@@ -451,6 +458,7 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
         lo, hi = mesh.bbox()
         scene = TabletopScene(mesh, textures, float(lo[2]), s.table_half_size * s.scale, table_rgb,
                               s.background, s.background_distance * s.scale)
+        gt_plane = scene.plane
         cams = tabletop_cameras(s, target=0.5 * (lo + hi) / s.scale)
     else:
         cams = make_cameras(s)
@@ -485,6 +493,8 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
                                         seed=s.seed * 100003 + i, alpha=True, light_position=light_pos,
                                         ambient=l_amb)
                 rgb, coverage = np.ascontiguousarray(rgba[:, :, :3]), rgba[:, :, 3]
+                if gt_plane is not None:  # tabletop_void: the same files as its tabletop peer
+                    write_mask(tmp / "gt" / "masks" / f"{cam.stem}.png", coverage > 0.5)
             path = tmp / cam.image
             gt_rgb = rgb  # the scene's radiance, before the phone's imaging (gt/linear)
             if s.phone_effects:
@@ -529,9 +539,9 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
         if s.phone_effects:
             phone.save_imaging(tmp / "gt" / "imaging.json", phone.imaging_record(
                 s, cams, views_im, exposures, gt_cams.light_intensity, l_amb * linear_scale))
-        if scene is not None:
-            save_plane(tmp / "gt" / "plane.json", scene.plane, table_half_size=s.table_half_size * s.scale,
-                       marker_mat=marker)
+        if gt_plane is not None:
+            save_plane(tmp / "gt" / "plane.json", gt_plane, table_half_size=s.table_half_size * s.scale,
+                       marker_mat=marker, table=scene is not None)
         meta = {
             "generator": "recon.synth.capture.make_capture",
             "command": command,

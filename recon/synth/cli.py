@@ -43,7 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--specular", type=float, help="constant specular albedo (0 = purely diffuse object)")
     p.add_argument("--roughness", type=float, help="constant roughness instead of the three sectors")
     p.add_argument("--scale", type=float, help="scene scale (object and cameras; light scaled by scale^2)")
-    p.add_argument("--scene", choices=SCENES, help="void (the object alone) or tabletop (on a table)")
+    p.add_argument("--scene", choices=SCENES, help="void (the object alone), tabletop (on a table) or tabletop_void "
+                   "(the tabletop object and cameras without the table)")
     p.add_argument("--elevations", type=float, nargs=2, dest="elevation_range", metavar=("LOW", "HIGH"),
                    help="tabletop: camera elevations above the table, degrees")
     p.add_argument("--rings", type=int, help="tabletop: number of rings of views")

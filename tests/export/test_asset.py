@@ -299,3 +299,60 @@ def test_rgb_specular_map(fresh, tmp_path):
         got = read(out[fmt]).a_s
         assert got.shape == (6, 5, 3)
         assert np.abs(srgb_encode(got) - srgb_encode(a_s)).max() <= HALF_STEP, fmt
+
+
+@pytest.mark.parametrize("height_m", [0.0, 0.12])
+def test_support_plane_stands_the_asset_upright_at_scale(tmp_path, model, height_m, caplog):
+    """A support plane (plane.json) under the object, tilted in the cameras.json frame: in both
+    formats the plane's normal is +Y, the object's lowest point (on the plane) at y = 0, its
+    bounding box centred in x and z; export.object_height_m gives the scale (the height above
+    the plane, in metres); without a known length the asset is unitless, with a warning."""
+    from recon.support import SupportPlane, save_plane
+
+    n = np.array([0.3, -0.4, 0.85])
+    n /= np.linalg.norm(n)
+    plane = SupportPlane(n, -float((model.mesh.v_pos @ n).min()))  # touching the object's lowest point
+    save_plane(tmp_path / "plane.json", plane)
+    with caplog.at_level("WARNING"):
+        out = export_asset(*model.inputs(), tmp_path / "export", ExportSettings(object_height_m=height_m),
+                           cameras_json=model.cameras_json, plane_json=tmp_path / "plane.json")
+    assert ("scale is unknown" in caplog.text) == (height_m == 0)
+    true_height = float(plane.height(model.mesh.v_pos).max())
+    scale = height_m / true_height if height_m else 1.0
+    for fmt, read in READERS.items():
+        a = read(out[fmt])
+        v = a.mesh.v_pos
+        assert abs(v[:, 1].min()) < 1e-6 * scale, fmt
+        assert abs(v[:, 1].max() - scale * true_height) < 1e-5, fmt
+        lo, hi = v.min(0), v.max(0)
+        assert np.allclose([(lo[0] + hi[0]) / 2, (lo[2] + hi[2]) / 2], 0, atol=1e-6), fmt
+        T = a.object_to_world
+        assert np.allclose(T[:3, :3] @ n / scale, [0, 1, 0], atol=1e-6), fmt  # the normal is +Y
+    # no plane file (none found): today's frame (mean camera up) and no translation
+    out = export_asset(*model.inputs(), tmp_path / "void", ExportSettings(), cameras_json=model.cameras_json,
+                       plane_json=tmp_path / "absent.json")
+    assert np.allclose(read_glb(out["glb"]).object_to_world[:3, 3], 0)
+
+
+def test_marker_mat_sets_the_scale(tmp_path, tmp_path_factory, model):
+    """export.marker_square_m: the scale comes from the ChArUco mat in the views (recon.marker),
+    within 1 %; a declared mat missing from the views is an error naming the folder."""
+    from _tabletop_scene import MAT_TEST, MAT_TEST_SQUARE_UNITS, tabletop_capture
+
+    cap = tabletop_capture(tmp_path_factory.getbasetemp(), **MAT_TEST)
+    s = ExportSettings(up="identity", marker_square_m=0.03, object_height_m=5.0)  # the mat wins
+    out = export_asset(*model.inputs(), tmp_path / "export", s, cameras_json=cap / "gt" / "cameras.json",
+                       views_dir=cap / "images")
+    a = read_glb(out["glb"])
+    true = 0.03 / MAT_TEST_SQUARE_UNITS
+    scale = float(np.cbrt(np.linalg.det(a.object_to_world[:3, :3])))
+    assert abs(scale / true - 1) < 0.01
+    import pygltflib
+
+    extras = pygltflib.GLTF2().load(str(out["glb"])).asset.extras["recon"]
+    assert extras["scale_source"] == "marker mat" and extras["marker_mat"]["neighbour_pairs"] >= 6
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ExportError, match="empty"):
+        export_asset(*model.inputs(), tmp_path / "export2", s, cameras_json=cap / "gt" / "cameras.json",
+                     views_dir=empty)

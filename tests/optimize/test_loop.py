@@ -283,3 +283,29 @@ def test_stages_never_remesh_finer_than_the_pixels(capture, tmp_path):
     # the second stage (32 px) asks for less than 3 pixels and is held at the limit: fewer faces
     assert capped["stages"][1]["edge_length"] > 0.06 * scale
     assert capped["stages"][1]["faces"] < free["stages"][1]["faces"]
+
+
+def test_support_plane_is_never_crossed(capture, tmp_path):
+    """A support plane (plane.json) just under the initial mesh: large geometry steps push
+    vertices down, each step's projection puts them back onto the plane (logged), the final
+    surface stays above it; the same run without the plane goes below (the control)."""
+    from recon.support import SupportPlane, save_plane
+
+    root, _ = capture
+    images, masks, sats, cams, init = _inputs(root)
+    z0 = read_mesh(init).v_pos[:, 2].min() + 0.01
+    save_plane(tmp_path / "plane.json", SupportPlane(np.array([0.0, 0.0, 1.0]), -z0))
+    s = OptimizeSettings(**{**TINY.__dict__, "optimizer": "adam", "lr_geometry": 0.05,
+                            "stages": (StageSettings(0.12, 32, 4), StageSettings(0.09, 32, 2))})
+    optimize_capture(images, masks, sats, cams, init, tmp_path / "free", s, progress=False,
+                     plane_json=tmp_path / "absent.json")
+    optimize_capture(images, masks, sats, cams, init, tmp_path / "plane", s, progress=False,
+                     plane_json=tmp_path / "plane.json")
+    assert read_obj(tmp_path / "free" / "mesh.obj").v_pos[:, 2].min() < z0 - 0.005
+    v = read_obj(tmp_path / "plane" / "mesh.obj").v_pos
+    assert v[:, 2].min() >= z0 - 1e-6
+    assert np.count_nonzero(np.abs(v[:, 2] - z0) < 1e-6) >= 3  # vertices resting on the plane
+    log = [json.loads(x) for x in (tmp_path / "plane" / "log.jsonl").read_text().splitlines()]
+    assert sum(r["plane_projected"] for r in log) > 0
+    free_log = [json.loads(x) for x in (tmp_path / "free" / "log.jsonl").read_text().splitlines()]
+    assert all(r["plane_projected"] == 0 for r in free_log)

@@ -310,3 +310,12 @@ def test_image_with_another_aspect_ratio_is_rejected(tmp_path, scene, fast_setti
 def test_settings_reject_bad_values(bad):
     with pytest.raises(ValueError):
         ReportSettings(**bad)
+
+
+def test_unknown_asset_scale_is_a_warning_on_the_page(report):
+    """The export stage had no known length (no mat, no export.object_height_m): the report
+    records how the asset was placed and scaled and says on the page that the scale is unknown."""
+    out, _, m = report
+    assert m["asset"]["scale_warning"] is True and m["asset"]["meters_per_unit"] == 1.0
+    assert m["asset"]["scale_source"].startswith("unknown")
+    assert "Asset scale: unknown" in (out / "index.html").read_text()

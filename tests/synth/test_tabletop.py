@@ -175,3 +175,28 @@ def test_cli_tabletop_options_round_trip():
 def test_bad_tabletop_settings_raise(change, match):
     with pytest.raises(SynthError, match=match):
         dataclasses.replace(SynthSettings(**TABLETOP_TEST), **change)
+
+
+def test_tabletop_void_is_the_same_capture_without_the_table(cap, tmp_path_factory):
+    """scene="tabletop_void": the same object (base cut flat), cameras and gt files as the
+    tabletop capture, and photos that hold the object alone (black around it)."""
+    void = tabletop_capture(tmp_path_factory.getbasetemp(), scene="tabletop_void")
+    table_cams = load_cameras(cap / "gt" / "cameras.json")
+    void_cams = load_cameras(void / "gt" / "cameras.json")
+    for a, b in zip(void_cams.frames, table_cams.frames, strict=True):
+        np.testing.assert_allclose(a.world_to_camera, b.world_to_camera, atol=1e-12)
+    np.testing.assert_allclose(read_obj(void / "gt" / "mesh.obj").v_pos, read_obj(cap / "gt" / "mesh.obj").v_pos)
+    p, q = load_plane(void / "gt" / "plane.json"), load_plane(cap / "gt" / "plane.json")
+    np.testing.assert_allclose([*p.normal, p.offset], [*q.normal, q.offset], atol=1e-12)
+    for cam in void_cams.frames[::4]:
+        gt = read_mask(void / "gt" / "masks" / f"{cam.stem}.png")
+        np.testing.assert_array_equal(gt, read_mask(cap / "gt" / "masks" / f"{cam.stem}.png"))
+        photo = read_exr(void / cam.image)
+        far = ~cv2_dilate(gt, 5)
+        assert abs(photo.mean(-1)[far].mean()) < 0.01 * np.median(photo.mean(-1)[gt])  # noise only
+
+
+def cv2_dilate(mask, r):
+    import cv2
+
+    return cv2.dilate(mask.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(bool)

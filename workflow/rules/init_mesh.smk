@@ -20,6 +20,7 @@ rule init_mesh:
         "../../envs/recon.yaml"
     params:
         masks_dir=get_view_masks_dir,
+        plane=get_plane,
         given=untracked(get_given_init_mesh),
         capture_files=capture_files(get_given_init_mesh),
         settings=get_settings("init_mesh"),
