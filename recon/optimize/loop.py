@@ -37,6 +37,7 @@ from recon.optimize import objective
 from recon.optimize import regularizers as reg
 from recon.optimize.guard import SurfaceGuard, self_intersecting_faces
 from recon.optimize.largesteps import AdamUniform, LargeSteps
+from recon.optimize.imaging import run_imaging_selection
 from recon.optimize.material import compare, heldout_error, model_from_settings, select_material
 from recon.optimize.params import TexturePyramid, albedo_param, constant_map, roughness_param
 from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, topology_report, unwrap
@@ -481,6 +482,12 @@ def optimize_capture(
         final_maps, model = fit.maps, fit.model
         timer.add("material", time.perf_counter() - t0)
         log.info("material model: %s", model.label())
+    imaging = None
+    if settings.select_imaging and heldout is not None:
+        t0 = time.perf_counter()
+        final_maps, model, imaging = run_imaging_selection(
+            settings, final, final_maps, model, st.covered, views, heldout, light, tone_scale, images)
+        log.info("imaging model: %s (%.1f s)", ", ".join(imaging["chosen"]) or "ideal", time.perf_counter() - t0)
     topo = topology_report(final.v_pos, final.t_pos_idx)
     n_si = int(self_intersecting_faces(final.v_pos, final.t_pos_idx).sum())
     wall = time.perf_counter() - t_start
@@ -488,6 +495,8 @@ def optimize_capture(
     summary["material_model"] = model.to_dict()
     summary["material_model_label"] = model.label()
     summary["material_selection"] = selection
+    summary["imaging_selection"] = imaging
+    summary["imaging_model"] = imaging["chosen"] if imaging else []
     summary["holdout"] = holdout_info
     _save(run, prog, st, int(stages[-1].iterations), done=True)
     out_dir.mkdir(parents=True, exist_ok=True)
