@@ -15,12 +15,20 @@ validate(config, "workflow/schemas/config.schema.yaml")
 include: "workflow/rules/common.smk"
 
 
+# One run at a time per results folder (recon.runlock: a lock that a crash cannot leave
+# behind; profiles/default turns Snakemake's own lock off). Taken when the jobs start, so
+# dry runs (-n) never wait for it.
+onstart:
+    lock_run()
+
+
 rule all:
     default_target: True
     input:
         get_all_targets,
 
 
+include: "workflow/rules/check.smk"
 include: "workflow/rules/linearize.smk"
 include: "workflow/rules/masks.smk"
 include: "workflow/rules/poses.smk"

@@ -16,17 +16,23 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import logging
 import math
 import os
+import re
+import types
 import typing
 from pathlib import Path
 
 import yaml
 
+from recon.io.images import IMAGE_EXTENSIONS
+
 STAGES = ("linearize", "masks", "poses", "init_mesh", "uv", "optimize", "export", "report")
 PRESETS = ("draft", "balanced", "accurate")
 CAPTURE_KEYS = ("preset", "light_intensity") + STAGES
 DEFAULT_PRESETS_DIR = Path(__file__).resolve().parents[1] / "config" / "presets"
+_log = logging.getLogger(__name__)
 
 
 class ConfigError(ValueError):
@@ -98,7 +104,8 @@ def stage_settings(
     """Merged settings dict of ``stage``: preset section updated by capture.yaml's section.
 
     The capture's own ``preset`` key, when present, replaces ``preset``. The result carries
-    ``_sources`` (the files it came from) for error messages; :func:`build_settings` drops it.
+    ``_sources`` (the files it came from) and ``_key_sources`` (the file each key of capture.yaml
+    came from) for error messages; :func:`build_settings` drops them.
     """
     if stage not in STAGES:
         raise ConfigError(f"unknown stage '{stage}'; stages are {', '.join(STAGES)}")
@@ -106,14 +113,18 @@ def stage_settings(
     preset = cap.get("preset", preset)
     merged = copy.deepcopy(load_preset(preset, presets_dir).get(stage) or {})
     sources = [str(Path(presets_dir or DEFAULT_PRESETS_DIR) / f"{preset}.yaml")]
+    key_sources = {}
     if stage in cap:
         merged.update(cap[stage])
         sources.append(str(Path(capture_dir) / "capture.yaml"))
+        key_sources = dict.fromkeys(cap[stage], str(Path(capture_dir) / "capture.yaml"))
     if stage == "poses" and "light_intensity" in cap:  # the one route of the light (module docstring)
         merged["light_intensity"] = cap["light_intensity"]
+        key_sources["light_intensity"] = str(Path(capture_dir) / "capture.yaml")
         if str(Path(capture_dir) / "capture.yaml") not in sources:
             sources.append(str(Path(capture_dir) / "capture.yaml"))
     merged["_sources"] = sources
+    merged["_key_sources"] = key_sources
     merged["_preset"] = preset
     return merged
 
@@ -156,28 +167,89 @@ def build_settings(cls: type[T], values: dict | None, source: str = "settings") 
     """
     values = dict(values or {})
     sources = values.pop("_sources", None)
+    key_sources = values.pop("_key_sources", None) or {}
     values.pop("_preset", None)
     where = " / ".join(sources) if sources else source
+
+    def where_is(*keys):  # the one file the keys came from, when that is known
+        files = {key_sources.get(k, sources[0] if sources else source) for k in keys}
+        return files.pop() if len(files) == 1 else where
+
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(values) - set(fields))
     if unknown:
         raise ConfigError(
-            f"{where}: unknown {cls.__name__} key(s) {unknown}; valid keys: {', '.join(sorted(fields))}"
+            f"{where_is(*unknown)}: unknown {cls.__name__} key(s) {unknown}; valid keys: {', '.join(sorted(fields))}"
         )
     hints = typing.get_type_hints(cls)
+    signed = set(getattr(cls, "SIGNED_SETTINGS", ()))
     kwargs = {}
     for name, value in values.items():
         hint = hints.get(name)
+        problem = _type_problem(value, hint, name in signed)
+        if problem:
+            raise ConfigError(f"{where_is(name)}: {cls.__name__} setting '{name}' {problem}, got {value!r}")
         origin = typing.get_origin(hint)
         if (hint is tuple or origin is tuple) and isinstance(value, list):
             value = tuple(tuple(v) if isinstance(v, list) else v for v in value)
-        elif hint is float and isinstance(value, int) and not isinstance(value, bool):
+        elif float in _hint_types(hint) and int not in _hint_types(hint) and _is_number(value):
             value = float(value)
+        elif int in _hint_types(hint) and float not in _hint_types(hint) and _is_number(value):
+            value = int(value)  # a whole number written as 4.0
         kwargs[name] = value
     try:
         return cls(**kwargs)
-    except (TypeError, ValueError) as e:
-        raise ConfigError(f"{where}: invalid {cls.__name__} ({e})") from e
+    except (TypeError, ValueError) as e:  # the dataclass's own checks: name the file of the keys it names
+        named = [k for k in values if re.search(rf"\b{re.escape(k)}\b", str(e))]
+        raise ConfigError(f"{where_is(*named) if named else where}: invalid {cls.__name__} ({e})") from e
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _hint_types(hint) -> tuple:
+    """The classes a field's type hint allows (``X | None`` -> (X, NoneType)); () when unknown."""
+    if hint is None:
+        return ()
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        return tuple(typing.get_origin(h) or h for h in typing.get_args(hint))
+    return (typing.get_origin(hint) or hint,)
+
+
+def _type_problem(value, hint, signed: bool = False) -> str | None:
+    """What is wrong with ``value`` for a field typed ``hint`` (None: nothing).
+
+    A YAML file can give any type: a string for a number, a number for a switch. Numbers
+    (int, float) must be finite and, unless the field is in the dataclass's
+    ``SIGNED_SETTINGS``, not negative (counts, sizes, rates and weights); an ``int`` field
+    takes whole numbers only, a ``bool`` field true/false only. Fields of other types are left
+    to the dataclass's own checks.
+    """
+    allowed = _hint_types(hint)
+    if not allowed or value is None and type(None) in allowed:
+        return None
+    numeric = [t for t in allowed if t in (int, float)]
+    if _is_number(value) and numeric:
+        if not math.isfinite(value):
+            return "must be a finite number"
+        if int in numeric and float not in numeric and value != int(value):
+            return "must be a whole number"
+        if value < 0 and not signed:
+            return "must not be negative"
+        return None
+    if isinstance(value, bool) and bool in allowed:
+        return None
+    if isinstance(value, str) and str in allowed:
+        return None
+    if isinstance(value, (list, tuple)) and (tuple in allowed or list in allowed):
+        return None
+    if not set(allowed) <= {int, float, bool, str, tuple, list, type(None)}:
+        return None  # a type this check does not know: the dataclass decides
+    names = {int: "a whole number", float: "a number", bool: "true or false", str: "a string",
+             tuple: "a list", list: "a list", type(None): "null"}
+    want = " or ".join(dict.fromkeys(names[t] for t in allowed))
+    return f"must be {want}"
 
 
 def check_results_location(results: str | os.PathLike, captures_root: str | os.PathLike) -> None:
@@ -207,6 +279,13 @@ def discover_captures(captures_root: str | os.PathLike) -> list[str]:
             "or pass --config captures=DIR"
         )
     names = sorted(p.name for p in root.iterdir() if (p / "images").is_dir())
+    for p in sorted(root.iterdir()):
+        if p.is_dir() and not p.name.startswith(".") and not (p / "images").is_dir():
+            photos = [q.name for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTENSIONS]
+            shown = ", ".join(sorted(photos)[:3]) + (", ..." if len(photos) > 3 else "")
+            hint = (f"; it holds {len(photos)} photo(s) ({shown}): move them into {p / 'images'}/ "
+                    "to make it a capture") if photos else ""
+            _log.warning("%s: no images/ folder, so it is not a capture and is skipped%s", p, hint)
     if not names:
         raise ConfigError(
             f"no capture folders in '{root}': each capture is a folder with an images/ folder "

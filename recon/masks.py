@@ -208,6 +208,25 @@ def derive_mask(rgb_linear: np.ndarray, settings: MaskSettings = MaskSettings(),
     return mask, info
 
 
+def fit_given_mask(mask: np.ndarray, path: str | os.PathLike, size: tuple[int, int]) -> np.ndarray:
+    """A capture's own mask (bool ``(H, W)``, the photo's size) at the working ``size = (w, h)``
+    of the linear images, which the linearize stage may have reduced (``linearize.max_size``):
+    area-averaged and kept where at least half of the output pixel is object. MaskError naming
+    ``path`` when the mask is neither that size nor the photo's shape at another scale."""
+    w, h = size
+    mh, mw = mask.shape
+    if (mw, mh) == (w, h):
+        return mask
+    s = max(w, h) / max(mw, mh)
+    if s < 1 and (max(1, round(mw * s)), max(1, round(mh * s))) == (w, h):  # as linearize reduced the photo
+        import cv2
+
+        return cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) >= 0.5
+    raise MaskError(
+        f"{path}: mask is {mw}x{mh} but the image is {w}x{h}; give masks the size of the photos"
+    )
+
+
 def list_linear_stems(linear_dir: str | os.PathLike) -> list[str]:
     """Stems of the linear images ``<stem>.exr`` in ``linear_dir`` (sorted)."""
     linear_dir = Path(linear_dir)
@@ -283,12 +302,10 @@ def run_masks(
                 raise MaskError(f"{e}; rerun the linearize stage") from e
             given_png = given / f"{stem}.png" if given is not None else None
             if given_png is not None and given_png.is_file():
-                mask = read_mask(given_png)
-                if mask.shape != img.shape[:2]:
-                    raise MaskError(
-                        f"{given_png}: mask is {mask.shape[1]}x{mask.shape[0]} but the image is "
-                        f"{img.shape[1]}x{img.shape[0]}; give masks the size of the photos"
-                    )
+                mask = fit_given_mask(read_mask(given_png), given_png, img.shape[1::-1])
+                if not mask.any():  # (recon.validate refuses it first; this covers a later edit)
+                    raise MaskError(f"{given_png}: the mask is empty (every pixel 0), so it shows no object; draw "
+                                    "the object (nonzero pixels) or delete the file to let this stage derive it")
                 info = {"source": "given", "coverage": float(mask.mean())}
             else:
                 try:

@@ -56,7 +56,7 @@ import numpy as np
 from recon.io.atomic import atomic_dir
 from recon.io.cameras import Camera, CameraSet, load_cameras
 from recon.io.images import ImageError, linear_to_srgb, read_exr, read_mask, write_mask
-from recon.masks import LUMA, MaskError, MaskSettings, derive_mask
+from recon.masks import LUMA, MaskError, MaskSettings, derive_mask, fit_given_mask
 from recon.support import PlaneSettings, SupportPlane, aim_point, fit_support_plane, save_plane, scene_scale
 
 log = logging.getLogger(__name__)
@@ -853,11 +853,7 @@ def run_tabletop_masks(
         for cam in cams:
             p = Path(given_dir) / f"{cam.stem}.png"
             if p.is_file() and (given_stems is None or cam.stem in given_stems):
-                m = read_mask(p)
-                if m.shape != (cam.height, cam.width):
-                    raise MaskError(f"{p}: mask is {m.shape[1]}x{m.shape[0]} but the image is "
-                                    f"{cam.width}x{cam.height}; give masks the size of the photos")
-                given[cam.stem] = m
+                given[cam.stem] = fit_given_mask(read_mask(p), p, (cam.width, cam.height))
     # the plane is looked for even when every view has a given mask: the later stages use it
     plane, plane_info = None, {"found": False}
     if len(cams) < settings.min_views:

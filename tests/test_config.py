@@ -1,4 +1,5 @@
 import dataclasses
+import logging
 import subprocess
 import sys
 
@@ -91,3 +92,24 @@ def test_snakemake_rejects_wrong_config_key_and_value(repo_root, tmp_path):
     r = _snakemake(repo_root, "--config", f"captures={tmp_path}", f"results={tmp_path}/r", "preset=fastest")
     assert r.returncode != 0
     assert "fastest" in (r.stdout + r.stderr)
+
+
+def test_folders_without_images_are_named_when_skipped(tmp_path, caplog):
+    """A folder beside the captures that has no images/ is skipped with a warning naming it, and
+    a hint when its photos lie directly in it (issue 21 item 9)."""
+    from recon.config import discover_captures
+
+    (tmp_path / "good" / "images").mkdir(parents=True)
+    (tmp_path / "stray").mkdir()
+    for name in ("0001.JPG", "0002.dng", "notes.txt"):
+        (tmp_path / "stray" / name).write_bytes(b"x")
+    (tmp_path / "empty").mkdir()
+    (tmp_path / ".cache").mkdir()
+    (tmp_path / "README.md").write_text("my captures")
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        assert discover_captures(tmp_path) == ["good"]
+    warnings = sorted(r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING)
+    assert len(warnings) == 2, warnings
+    assert warnings[0] == f"{tmp_path / 'empty'}: no images/ folder, so it is not a capture and is skipped"
+    assert warnings[1].startswith(f"{tmp_path / 'stray'}: no images/ folder")
+    assert "2 photo(s) (0001.JPG, 0002.dng): move them into " + str(tmp_path / "stray" / "images") in warnings[1]

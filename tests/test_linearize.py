@@ -291,7 +291,7 @@ def test_real_blackmagic_dng(tmp_path, shared_data):
     images = tmp_path / "cap" / "images"
     images.mkdir(parents=True)
     os.symlink(bm_dng.resolve(), images / "bm.dng")
-    rec = linearize_capture(tmp_path / "cap", tmp_path / "linear", LinearizeSettings(preview_max_size=512))
+    rec = linearize_capture(tmp_path / "cap", tmp_path / "linear", LinearizeSettings(preview_max_size=512, max_size=0))
     out = read_exr(tmp_path / "linear" / "bm.exr")
     sat = read_mask(tmp_path / "linear" / "bm.sat.png")
     e = rec["images"]["bm"]
@@ -531,10 +531,49 @@ def test_real_jpegs_exif_focal_length(tmp_path, shared_data):
     rec = linearize_capture(tmp_path / "cap", tmp_path / "linear", LinearizeSettings(preview_max_size=256))
     e = rec["images"]["100_7100"]
     assert (e["exposure_time"], e["iso"], e["f_number"]) == (0.0025, 80.0, 2.8)
-    f_true = float((sceaux / "K.txt").read_text().split()[0])  # 2905.88 px
-    assert e["focal_length_px"] == pytest.approx(f_true, rel=0.03)
+    f_true = float((sceaux / "K.txt").read_text().split()[0])  # 2905.88 px at 2832 x 2128
+    # reduced to linearize.max_size (1600): the focal length in pixels follows the image
+    assert (e["source_width"], e["source_height"], e["width"], e["height"]) == (2832, 2128, 1600, 1202)
+    assert e["focal_length_px"] == pytest.approx(f_true * 1600 / 2832, rel=0.03)
     out = read_exr(tmp_path / "linear" / "100_7100.exr")
-    assert out.shape == (2128, 2832, 3) and np.all(np.isfinite(out)) and 0 <= out.min() and out.max() <= 1.0
+    assert out.shape == (1202, 1600, 3) and np.all(np.isfinite(out)) and 0 <= out.min() and out.max() <= 1.0
+    # the area average of the full-size linear photo, in linear space
+    full = linearize_capture(tmp_path / "cap", tmp_path / "linear_full", LinearizeSettings(max_size=0))
+    assert full["images"]["100_7100"]["focal_length_px"] == pytest.approx(f_true, rel=0.03)
+    big = read_exr(tmp_path / "linear_full" / "100_7100.exr")
+    assert big.shape == (2128, 2832, 3)
+    np.testing.assert_allclose(out.mean(axis=(0, 1), dtype=np.float64), big.mean(axis=(0, 1), dtype=np.float64), rtol=1e-4)
+
+
+def test_large_photos_are_reduced_in_linear_space_with_their_clipped_pixels(tmp_path):
+    """linearize.max_size: area averaging of linear values (not of sRGB codes), a clipped photo
+    pixel marks every output pixel it touches, and half floats on request."""
+    from PIL import Image
+
+    images = tmp_path / "cap" / "images"
+    images.mkdir(parents=True)
+    rng = np.random.default_rng(3)
+    codes = rng.integers(0, 256, size=(300, 400, 3), dtype=np.uint8)
+    codes[10, 20] = 255  # one clipped pixel
+    codes[codes == 255] = 254
+    codes[10, 20] = 255
+    Image.fromarray(codes).save(images / "a.png")
+    rec = linearize_capture(tmp_path / "cap", tmp_path / "linear", LinearizeSettings(max_size=100, half_float=True))
+    e = rec["images"]["a"]
+    assert (e["width"], e["height"], e["source_width"], e["source_height"]) == (100, 75, 400, 300)
+    assert (rec["width"], rec["height"]) == (100, 75)
+    out = read_exr(tmp_path / "linear" / "a.exr")
+    lin = _srgb_decode_codes(codes)
+    expect = lin.reshape(75, 4, 100, 4, 3).mean(axis=(1, 3))  # 4 x 4 blocks of linear values
+    np.testing.assert_allclose(out, expect, rtol=1e-3, atol=1e-6)  # half floats: 11 bits
+    sat = read_mask(tmp_path / "linear" / "a.sat.png")
+    assert sat.shape == (75, 100) and sat[10 // 4, 20 // 4] and sat.sum() == 1
+    assert e["fraction_clipped"] == pytest.approx(1 / 7500)
+
+
+def _srgb_decode_codes(codes):
+    c = codes.astype(np.float64) / 255.0
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
 # ---- bad inputs: clear errors naming the file, nothing left behind ----
@@ -655,7 +694,7 @@ def test_settings_validation_and_logging(tmp_path, caplog):
 # ---- the Snakemake rule and its adapter ----
 def test_linearize_rule(tmp_path, repo_root):
     captures, results = tmp_path / "captures", tmp_path / "results"
-    make_raw_capture(captures / "c1", EXPOSURES[:2])
+    make_raw_capture(captures / "c1", EXPOSURES[:3])  # 3 views: fewer are refused by the check step
     (captures / "c1" / "capture.yaml").write_text("linearize:\n  demosaic: LINEAR\n  saturation_threshold: 0.9\n")
     target = results / "c1" / "linear" / "linear.json"
     proc = subprocess.run(
@@ -666,7 +705,7 @@ def test_linearize_rule(tmp_path, repo_root):
     assert proc.returncode == 0, proc.stderr[-3000:]
     rec = json.loads(target.read_text())
     assert rec["settings"]["demosaic"] == "LINEAR" and rec["settings"]["saturation_threshold"] == 0.9
-    assert sorted(rec["images"]) == ["0000", "0001"]
+    assert sorted(rec["images"]) == ["0000", "0001", "0002"]
     for stem in rec["images"]:
         assert (target.parent / f"{stem}.exr").is_file() and (target.parent / "preview" / f"{stem}.jpg").is_file()
     assert "0001.dng" in (results / "c1" / "logs" / "linearize.log").read_text()
@@ -706,3 +745,29 @@ def test_heic_photos_read_like_jpeg_with_their_exif(tmp_path):
     for k in ("0000", "0001"):
         np.testing.assert_allclose(read_exr(tmp_path / "lin_heic" / f"{k}.exr"),
                                    read_exr(tmp_path / "lin_png" / f"{k}.exr"), rtol=1e-5, atol=1e-6)
+
+
+def test_png_alpha_is_ignored_with_a_warning_naming_the_file(tmp_path, caplog):
+    """An RGBA (or gray + alpha) PNG: the colour is linearized as without alpha; a photo whose
+    alpha hides pixels is named in a warning that says how to use it as a mask (issue 21 item 9);
+    an opaque alpha says nothing."""
+    import cv2
+
+    images = tmp_path / "cap" / "images"
+    images.mkdir(parents=True)
+    rgb = np.clip(scene(0)[0] * 0.8, 0, 0.99)
+    q8 = np.round(_srgb_encode(rgb) * 255).astype(np.uint8)
+    alpha = np.full(rgb.shape[:2], 255, np.uint8)
+    cv2.imwrite(str(images / "opaque.png"), np.dstack([q8[:, :, ::-1], alpha]))
+    alpha[:, : rgb.shape[1] // 4] = 0  # a quarter transparent
+    cv2.imwrite(str(images / "cutout.png"), np.dstack([q8[:, :, ::-1], alpha]))
+    cv2.imwrite(str(images / "plain.png"), q8[:, :, ::-1])
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        linearize_capture(tmp_path / "cap", tmp_path / "linear")
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1, warnings
+    assert str(images / "cutout.png") in warnings[0] and "25.0% of the pixels transparent" in warnings[0]
+    assert "masks/cutout.png" in warnings[0]
+    plain = read_exr(tmp_path / "linear" / "plain.exr")
+    for k in ("opaque", "cutout"):
+        np.testing.assert_array_equal(read_exr(tmp_path / "linear" / f"{k}.exr"), plain)

@@ -110,6 +110,19 @@ def test_run_masks_given_and_derived(scene, tmp_path):
     assert sorted(p.name for p in out.iterdir()) == sorted([f"{s}.png" for s in stems] + ["masks.json"])
 
 
+def test_given_mask_of_the_full_photo_follows_the_reduced_image(tmp_path):
+    """A capture's own mask at the photo's size when linearize reduced the photo
+    (linearize.max_size): area-reduced, object where at least half the output pixel is."""
+    full = np.zeros((300, 400), bool)
+    full[40:200, 100:301] = True
+    small = rm.fit_given_mask(full, "masks/a.png", (100, 75))
+    expect = full.reshape(75, 4, 100, 4).mean(axis=(1, 3)) >= 0.5
+    np.testing.assert_array_equal(small, expect)
+    assert rm.fit_given_mask(full, "masks/a.png", (400, 300)) is full
+    with pytest.raises(rm.MaskError, match=r"masks/a\.png: mask is 400x300 but the image is 100x80"):
+        rm.fit_given_mask(full, "masks/a.png", (100, 80))
+
+
 def test_run_masks_wrong_size_leaves_nothing(scene, tmp_path):
     given = tmp_path / "given"
     cam0 = scene["cameras"].frames[-1]

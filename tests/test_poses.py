@@ -83,6 +83,30 @@ def test_given_cameras_with_wrong_size_fail_cleanly(tmp_path):
         rp.run_poses(lin, tmp_path / "poses", given_cameras=given)
 
 
+def test_given_cameras_of_larger_photos_follow_the_reduced_images(tmp_path):
+    """Photos that linearize reduced (linearize.max_size): the given cameras' K scales per axis
+    to the linear images' size, and a world point still projects onto the same image position."""
+    lin = tmp_path / "linear"
+    cams = _tiny_views(lin, w=16, h=12)
+    big = CameraSet(tuple(c.scaled(4.0) for c in cams), light_intensity=2.5)  # the photos: 64 x 48
+    given = tmp_path / "capture" / "cameras.json"
+    save_cameras(given, big)
+    out = tmp_path / "poses"
+    rp.run_poses(lin, out, given_cameras=given)
+    got = load_cameras(out / "cameras.json")
+    assert got.light_intensity == 2.5
+    p = np.array([[0.1, -0.2, 0.3], [0.0, 0.0, 0.0]])
+    for c, b in zip(got, big, strict=True):
+        assert (c.width, c.height) == (16, 12)
+        np.testing.assert_allclose(c.project(p)[0], b.project(p)[0] / 4.0, rtol=1e-12)
+        np.testing.assert_array_equal(c.world_to_camera, b.world_to_camera)
+    # a size that is not the photo reduced is still refused
+    odd = CameraSet(tuple(Camera(c.image, 64, 40, c.K, c.world_to_camera) for c in big))
+    save_cameras(given, odd)
+    with pytest.raises(rp.PoseError, match="is 64x40 in cameras.json but the image is 16x12"):
+        rp.run_poses(lin, tmp_path / "poses2", given_cameras=given)
+
+
 def _capture_settings(capture, **extra):
     """The poses settings a workflow run builds for ``capture`` (preset + capture.yaml)."""
     return build_settings(rp.PoseSettings, {**stage_settings("poses", "draft", capture), **extra})
@@ -437,9 +461,10 @@ def test_snakemake_skips_sfm_and_init_mesh_when_given(repo_root, tmp_path):
     res = tmp_path / "results"
     jobs = {name: _planned_jobs(repo_root, caps, res, f"{res}/{name}/uv/mesh.obj")
             for name in ("given", "cams_only", "sfm")}
-    assert jobs["given"] == {"uv"}
-    assert jobs["cams_only"] == {"linearize", "masks", "poses", "init_mesh", "uv"}
-    assert jobs["sfm"] == {"linearize", "masks", "poses", "init_mesh", "uv"}
+    # (check: the whole capture validated before any stage, recon.validate)
+    assert jobs["given"] == {"check", "uv"}
+    assert jobs["cams_only"] == {"check", "linearize", "masks", "poses", "init_mesh", "uv"}
+    assert jobs["sfm"] == {"check", "linearize", "masks", "poses", "init_mesh", "uv"}
 
 
 def test_sfm_support_plane_pass_replaces_the_masks_of_a_tabletop_capture(tmp_path, tmp_path_factory):

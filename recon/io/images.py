@@ -55,11 +55,43 @@ def _as_hwc(image: np.ndarray, path) -> np.ndarray:
     return a
 
 
-def write_exr(path: str | os.PathLike, image: np.ndarray) -> None:
-    """Write a float32 EXR (1 channel 'Y', 3 channels RGB, 4 RGBA), atomically."""
+HALF_MAX = 65504.0
+"""Largest finite half float (IEEE 754 binary16)."""
+HALF_MIN_SCALE = 2.0**-8
+"""Smallest 99th percentile of |values| written as half: there the absolute step near zero (at most
+6e-8, subnormal halfs) stays below 1.5e-5 of the image's scale."""
+
+
+def half_precision_suffices(a: np.ndarray) -> bool:
+    """Whether half floats keep ``a`` (any shape) to about 0.05 % of its scale: every finite value
+    within the half range and the 99th percentile of its nonzero |a| at least
+    :data:`HALF_MIN_SCALE` (an image of tiny values, e.g. radiance in far units, would lose its
+    dark tones to subnormals). An image of zeros is kept exactly."""
+    mag = np.abs(a[np.isfinite(a)])
+    mag = mag[mag > 0]
+    if mag.size == 0:
+        return True
+    return bool(mag.max() <= HALF_MAX and np.percentile(mag, 99) >= HALF_MIN_SCALE)
+
+
+def write_exr(path: str | os.PathLike, image: np.ndarray, half: bool = False) -> None:
+    """Write an EXR (1 channel 'Y', 3 channels RGB, 4 RGBA), ZIP-compressed, atomically.
+
+    ``half``: store 16-bit half floats (11 significant bits, about 3 decimal digits; normal
+    down to 6.1e-5, steps of 6e-8 below) instead of float32: half the size on disk and in
+    memory, enough for photographs (8-bit sRGB steps are 0.4-8 %, RAW shot noise far above
+    0.05 %). An image that half floats would not keep (:func:`half_precision_suffices`: values
+    beyond 65504, or an image of tiny values) is written as float32 instead.
+    """
     import OpenEXR
 
-    a = np.ascontiguousarray(_as_hwc(image, path).astype(np.float32))
+    a = _as_hwc(image, path)
+    if half and half_precision_suffices(a):
+        a = np.ascontiguousarray(a.astype(np.float16))
+    else:
+        if half:
+            log.info("%s: values outside what half floats keep; written as float32", path)
+        a = np.ascontiguousarray(a.astype(np.float32))
     if a.shape[2] == 1:
         channels = {"Y": np.ascontiguousarray(a[:, :, 0])}
     elif a.shape[2] == 3:
@@ -132,7 +164,7 @@ def register_heif() -> None:
 
 
 def _read_heif(path: Path) -> tuple[np.ndarray, int]:
-    """A HEIC/HEIF photo (8-bit sRGB as phones write it) as float32 ``(H, W, 3)`` in [0, 1]."""
+    """A HEIC/HEIF photo (8-bit sRGB as phones write it) as uint8 ``(H, W, 3)`` codes."""
     from PIL import Image, UnidentifiedImageError
 
     register_heif()
@@ -141,11 +173,12 @@ def _read_heif(path: Path) -> tuple[np.ndarray, int]:
             rgb = np.asarray(im.convert("RGB"))
     except (UnidentifiedImageError, OSError, ValueError) as e:
         raise ImageError(f"{path}: cannot decode the HEIC/HEIF image ({e}); re-export it as JPEG") from e
-    return rgb.astype(np.float32) / 255.0, 8
+    return rgb, 8
 
 
-def read_ldr(path: str | os.PathLike) -> tuple[np.ndarray, int]:
-    """Read a PNG/JPEG/HEIC as float32 ``(H, W, C)`` in [0, 1] (still encoded) and its bit depth.
+def read_ldr_codes(path: str | os.PathLike) -> tuple[np.ndarray, int]:
+    """Read a PNG/JPEG/HEIC as its code values: uint8 or uint16 ``(H, W, C)`` (RGB order, still
+    encoded) and the bit depth. A quarter (8-bit) of the memory of :func:`read_ldr`'s floats.
 
     EXIF orientation is ignored: pixels are used as stored, like every other view.
     """
@@ -169,7 +202,23 @@ def read_ldr(path: str | os.PathLike) -> tuple[np.ndarray, int]:
         bits = 16
     else:
         raise ImageError(f"{path}: unsupported sample type {img.dtype}; use 8- or 16-bit PNG/JPEG")
-    return (img.astype(np.float32) / float(2**bits - 1)), bits
+    return img, bits
+
+
+def read_ldr(path: str | os.PathLike) -> tuple[np.ndarray, int]:
+    """Read a PNG/JPEG/HEIC as float32 ``(H, W, C)`` in [0, 1] (still encoded) and its bit depth.
+
+    EXIF orientation is ignored: pixels are used as stored, like every other view.
+    """
+    codes, bits = read_ldr_codes(path)
+    return codes.astype(np.float32) / np.float32(2**bits - 1), bits
+
+
+def srgb_codes_to_linear(codes: np.ndarray, bits: int) -> np.ndarray:
+    """sRGB code values (uint8/uint16, ``bits`` deep) to linear float32 through a lookup table:
+    the same values as ``srgb_to_linear(codes / (2**bits - 1))`` without full-size temporaries."""
+    lut = srgb_to_linear(np.arange(2**bits, dtype=np.float32) / np.float32(2**bits - 1))
+    return lut[codes]
 
 
 def write_png(path: str | os.PathLike, image: np.ndarray, bits: int = 8) -> None:
@@ -203,8 +252,8 @@ def write_jpg(path: str | os.PathLike, rgb_srgb: np.ndarray, quality: int = 92) 
 
 def read_mask(path: str | os.PathLike) -> np.ndarray:
     """Read a mask PNG: bool ``(H, W)``, nonzero = True."""
-    img, _ = read_ldr(path)
-    return img[:, :, 0] > 0
+    codes, _ = read_ldr_codes(path)
+    return codes[:, :, 0] > 0
 
 
 def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:

@@ -159,7 +159,17 @@ def read_ply(path: str | os.PathLike) -> Mesh:
     m = o3d.io.read_triangle_mesh(str(path))
     if len(m.vertices) == 0 or len(m.triangles) == 0:
         raise MeshError(f"{path}: no vertices or triangles could be read; is it a triangle mesh PLY?")
-    return Mesh(np.asarray(m.vertices), np.asarray(m.triangles))
+    mesh = Mesh(np.asarray(m.vertices), np.asarray(m.triangles))
+    bad = (mesh.t_pos_idx < 0) | (mesh.t_pos_idx >= len(mesh.v_pos))
+    if bad.any():
+        f = int(np.argmax(bad.any(axis=1)))
+        raise MeshError(f"{path}: {int(bad.any(axis=1).sum())} face(s) refer to vertices that do not exist (face {f} "
+                        f"uses vertex {int(mesh.t_pos_idx[f][bad[f]][0])}; the file has {len(mesh.v_pos)} vertices, "
+                        "numbered from 0); re-export the mesh")
+    if not np.isfinite(mesh.v_pos).all():
+        raise MeshError(f"{path}: {int((~np.isfinite(mesh.v_pos)).any(axis=1).sum())} vertex position(s) are NaN "
+                        "or Inf; re-export the mesh")
+    return mesh
 
 
 def read_mesh(path: str | os.PathLike) -> Mesh:

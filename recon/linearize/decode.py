@@ -15,12 +15,16 @@ EXR: unchanged, nothing clipped.
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
-from recon.io.images import ImageError, read_exr, read_ldr, srgb_to_linear
+from recon.io.images import ImageError, read_exr, read_ldr_codes, srgb_codes_to_linear
 from recon.linearize.metadata import View
 from recon.linearize.opcodes import apply_gain_maps
 from recon.linearize.settings import LinearizeError, LinearizeSettings
+
+log = logging.getLogger(__name__)
 
 
 def _decode_raw(view: View, settings: LinearizeSettings) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -131,9 +135,29 @@ def _stage2(raw_visible: np.ndarray, colors: np.ndarray, black: np.ndarray, whit
 
 
 def _as_rgb(img: np.ndarray) -> np.ndarray:
-    if img.shape[2] == 1:
-        return np.repeat(img, 3, axis=2)
+    if img.shape[2] <= 2:  # gray, gray + alpha
+        return np.repeat(img[:, :, :1], 3, axis=2)
     return img[:, :, :3]
+
+
+def _warn_alpha(path, img: np.ndarray, opaque: float = 1.0) -> float:
+    """Warn, naming the file, when a PNG's alpha channel is not fully opaque: the pipeline reads
+    colour only (the object's mask comes from masks/<stem>.png or is derived from the photo).
+    ``opaque``: the alpha of an opaque pixel (255 for 8-bit codes). Returns the transparent
+    fraction (alpha < opaque / 2)."""
+    if img.shape[2] not in (2, 4):
+        return 0.0
+    alpha = img[:, :, -1]
+    if np.all(alpha >= opaque):
+        return 0.0
+    transparent = float(np.mean(alpha < 0.5 * opaque))
+    log.warning(
+        "%s: its alpha channel is ignored (%.1f%% of the pixels transparent): only the colour is used, "
+        "including where alpha hides it; if the alpha marks the object, save it as masks/%s.png "
+        "(nonzero = object) and export the photo without alpha",
+        path, 100 * transparent, path.stem,
+    )
+    return transparent
 
 
 def decode_view(view: View, settings: LinearizeSettings, matrix: np.ndarray | None) -> tuple:
@@ -144,12 +168,13 @@ def decode_view(view: View, settings: LinearizeSettings, matrix: np.ndarray | No
         return rgb.reshape(cam.shape).astype(np.float32), clipped, levels
     if view.kind == "ldr":
         try:
-            img, bits = read_ldr(view.path)
+            codes, bits = read_ldr_codes(view.path)  # 8-bit codes: a quarter of the floats' memory
         except ImageError as e:
             raise LinearizeError(str(e)) from e
-        img = _as_rgb(img)
-        clipped = np.any(img >= 1.0, axis=2)
-        return srgb_to_linear(img), clipped, {"bits": bits}
+        _warn_alpha(view.path, codes, 2**bits - 1)
+        codes = _as_rgb(codes)
+        clipped = np.any(codes == 2**bits - 1, axis=2)
+        return srgb_codes_to_linear(codes, bits), clipped, {"bits": bits}
     try:
         img = _as_rgb(read_exr(view.path))
     except ImageError as e:

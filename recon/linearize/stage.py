@@ -30,6 +30,9 @@ def list_images(capture_dir: str | os.PathLike) -> list[Path]:
             f"{folder}: no images/ folder; a capture holds its photos in images/ (DESIGN section 1)"
         )
     files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+    hidden = sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+    if hidden:  # .DS_Store, macOS ._* AppleDouble files: never photos
+        log.info("%s: ignoring hidden file(s) %s", folder, ", ".join(hidden))
     if not files:
         raise LinearizeError(f"{folder}: images/ is empty; put the capture's photos there")
     for p in files:
@@ -89,9 +92,9 @@ def linearize_capture(
     dict
         The content of ``linear.json``: ``color_space``, ``scale`` (what 1.0 means),
         ``exposure_reference`` (H_ref), ``white_balance`` (mode, camera neutral, white xy),
-        ``preview_gain``, ``width``, ``height``, and ``images``: per stem ``source`` (path
+        ``preview_gain``, ``width``, ``height`` (the linear images' size, see ``max_size``), ``source_width``, ``source_height`` (the photos'), and ``images``: per stem ``source`` (path
         relative to the capture), ``exr``, ``sat``, ``preview`` (relative to ``out_dir``),
-        ``kind``, ``width``, ``height``, ``exposure_time``, ``iso``, ``f_number``, ``exposure``
+        ``kind``, ``width``, ``height``, ``source_width``, ``source_height``, ``exposure_time``, ``iso``, ``f_number``, ``exposure``
         (H), ``exposure_scale`` (H_ref / H), ``as_shot_neutral``, ``camera_to_rec709``
         (3 x 3, RAW), ``color_matrix`` (XYZ -> camera as used), ``calibration_illuminant``,
         ``black_level``, ``white_level``, ``default_crop``, ``linearization_table``,
@@ -146,27 +149,31 @@ def linearize_capture(
         (tmp / "preview").mkdir()
         for i, (view, h) in enumerate(zip(views, exposures, strict=True)):
             rgb, clipped, levels = decode_view(view, settings, matrix)
-            height, width = rgb.shape[:2]
+            source_height, source_width = rgb.shape[:2]
             if size is None:
-                size, first_path = (width, height), view.path
-            elif (width, height) != size:
+                size, first_path = (source_width, source_height), view.path
+            elif (source_width, source_height) != size:
                 raise LinearizeError(
-                    f"{view.path}: size {width}x{height} differs from {first_path.name} "
+                    f"{view.path}: size {source_width}x{source_height} differs from {first_path.name} "
                     f"({size[0]}x{size[1]}); every view of a capture must come from the same camera "
                     "at the same size"
                 )
+            width, height = working_size(source_width, source_height, settings.max_size)
+            rgb, clipped = reduce_view(rgb, clipped, (width, height))
             scale = h_ref / h
             rgb *= np.float32(scale)
             if settings.clip_negative:
                 np.maximum(rgb, 0.0, out=rgb)
             if not np.all(np.isfinite(rgb)):
                 raise LinearizeError(f"{view.path}: linearization produced NaN/Inf values")
-            write_exr(tmp / f"{view.stem}.exr", rgb)
+            write_exr(tmp / f"{view.stem}.exr", rgb, half=settings.half_float)
             write_mask(tmp / f"{view.stem}.sat.png", clipped)
             lum = rgb[~clipped] @ np.array([0.2126, 0.7152, 0.0722], np.float32)
             p99.append(float(np.percentile(lum, 99)) if lum.size else 0.0)
             frac = float(clipped.mean())
-            f_px, f_src = focal_length_px(view, width, height)
+            f_px, f_src = focal_length_px(view, source_width, source_height)
+            if f_px is not None:
+                f_px *= width / source_width
             entry = {
                 "source": os.path.relpath(view.path, capture_dir),
                 "exr": f"{view.stem}.exr",
@@ -175,6 +182,8 @@ def linearize_capture(
                 "kind": view.kind,
                 "width": width,
                 "height": height,
+                "source_width": source_width,
+                "source_height": source_height,
                 "exposure_time": _json_num(view.exposure_time),
                 "iso": _json_num(view.iso),
                 "f_number": _json_num(view.f_number),
@@ -233,8 +242,10 @@ def linearize_capture(
                 "white level at H_ref; JPEG/PNG: 1.0 = the largest code value at H_ref; EXR: unchanged"
             ),
             "kind": kind,
-            "width": size[0],
-            "height": size[1],
+            "width": width,
+            "height": height,
+            "source_width": size[0],
+            "source_height": size[1],
             "exposure_reference": h_ref,
             "white_balance": {
                 "mode": settings.white_balance if kind == "raw" else "none (already white balanced)",
@@ -250,11 +261,37 @@ def linearize_capture(
     return record
 
 
+def working_size(width: int, height: int, max_size: int) -> tuple[int, int]:
+    """``(width, height)`` reduced so that the longer side is at most ``max_size`` (0 = no
+    limit), aspect ratio kept to the nearest pixel."""
+    if max_size <= 0 or max(width, height) <= max_size:
+        return width, height
+    s = max_size / max(width, height)
+    return max(1, round(width * s)), max(1, round(height * s))
+
+
+def reduce_view(rgb: np.ndarray, clipped: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """A linear view ``(H, W, 3)`` and its clipped-pixel mask ``(H, W)`` at ``size = (w, h)``.
+
+    Area averaging of the linear values (what a sensor with larger pixels would record; image
+    edges stay at 0 and W, so a camera matrix scales by w / W and h / H per axis). An output
+    pixel is clipped when any clipped photo pixel overlaps it, so no clipped value reaches a loss.
+    """
+    h0, w0 = rgb.shape[:2]
+    if (w0, h0) == tuple(size):
+        return rgb, clipped
+    import cv2
+
+    small = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+    touched = cv2.resize(clipped.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0
+    return small, touched
+
+
 def _resize(rgb: np.ndarray, max_size: int) -> np.ndarray:
     h, w = rgb.shape[:2]
-    if max_size <= 0 or max(h, w) <= max_size:
+    size = working_size(w, h, max_size)
+    if size == (w, h):
         return rgb
     import cv2
 
-    s = max_size / max(h, w)
-    return cv2.resize(rgb, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
+    return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)

@@ -14,6 +14,8 @@ class PoseError(ValueError):
 class PoseSettings:
     """Settings of the SfM path (ignored when the capture gives cameras.json)."""
 
+    SIGNED_SETTINGS = ("max_image_size", "distortion_gain", "num_threads")  # -1 has a meaning (below)
+
     # ---- features ----
     max_image_size: int = 1600  # SIFT runs on images downscaled to this long side (-1: full)
     max_num_features: int = 8192

@@ -22,7 +22,7 @@ from recon.poses.inputs import focal_prior, image_names, linear_stems, read_mask
 from recon.poses.mapping import map_views, refine, rescale_model, silhouette_consistency, unregistered_reasons
 from recon.poses.settings import PoseError, PoseSettings
 from recon.poses.undistort import pinhole_camera, undistort_maps, undistort_view
-from recon.segment import read_points_ply, run_tabletop_masks
+from recon.segment import read_points_ply, run_tabletop_masks, triangulate_points
 from recon.metrics import Similarity
 from recon.support import SupportPlane, fit_support_plane, load_plane, save_plane
 
@@ -98,13 +98,17 @@ def _passthrough(given: Path, linear_dir: Path, masks_dir: Path | None, tmp: Pat
     except CameraError as e:
         raise PoseError(f"{e} (fix the capture's cameras.json, or delete it to run SfM)") from e
     stems = set(linear_stems(linear_dir))
+    reduced = {}
     for c in cams:
         exr = linear_dir / f"{c.stem}.exr"
         if c.stem not in stems:
             raise PoseError(f"{given}: camera for '{c.image}' but no linear image {exr}; the names must match images/")
         h, w = read_exr(exr).shape[:2]
         if (w, h) != (c.width, c.height):
-            raise PoseError(f"{given}: '{c.image}' is {c.width}x{c.height} in cameras.json but the image is {w}x{h}")
+            s = max(w, h) / max(c.width, c.height)
+            if not (s < 1 and (max(1, round(c.width * s)), max(1, round(c.height * s))) == (w, h)):
+                raise PoseError(f"{given}: '{c.image}' is {c.width}x{c.height} in cameras.json but the image is {w}x{h}")
+            reduced[c.image] = (w, h)  # linearize reduced the photo (linearize.max_size)
         _link_or_copy(exr, tmp / "undistorted" / f"{c.stem}.exr")
         sat = linear_dir / f"{c.stem}.sat.png"
         if sat.is_file():
@@ -112,11 +116,39 @@ def _passthrough(given: Path, linear_dir: Path, masks_dir: Path | None, tmp: Pat
         if masks_dir is not None and (Path(masks_dir) / f"{c.stem}.png").is_file():
             _link_or_copy(Path(masks_dir) / f"{c.stem}.png", tmp / "undistorted" / "masks" / f"{c.stem}.png")
     light = _copy_given_cameras(given, tmp / "cameras.json", cams.light_intensity, light_intensity)
+    if reduced:
+        _reduce_cameras(tmp / "cameras.json", reduced)
+        log.info("%s: %d camera(s) scaled to the linear images' size (linearize.max_size)", given, len(reduced))
     missing = sorted(stems - {c.stem for c in cams})
     if missing:
         log.warning("views without a camera in %s are not used: %s", given, ", ".join(missing))
+    support = {"found": False, "reason": "no masks to replace"}
+    if masks_dir is not None and all((tmp / "undistorted" / "masks" / f"{c.stem}.png").is_file() for c in cams):
+        # an object standing on a table (issue 15): the plane from points triangulated in the
+        # views with the given cameras (the cameras' frame is the user's: it is kept)
+        known = load_cameras(tmp / "cameras.json")
+        pts = triangulate_points([read_exr(tmp / "undistorted" / f"{c.stem}.exr") for c in known], known)
+        _write_points(tmp / "points.ply", pts, np.zeros(len(pts), bool))
+        support = _support_plane_masks(tmp, masks_dir)
     return {"source": "given", "cameras": str(given), "registered": len(cams),
-            "unregistered": {m: "no camera in cameras.json" for m in missing}, "light_intensity": light}
+            "unregistered": {m: "no camera in cameras.json" for m in missing}, "light_intensity": light,
+            "support_plane": support}
+
+
+def _reduce_cameras(path: Path, sizes: dict[str, tuple[int, int]]) -> None:
+    """Rewrite the frames of ``path`` named in ``sizes`` (image -> (w, h)) for their images
+    reduced to that size: image edges stay at 0 and W (area resampling), so K's rows scale by
+    w / W and h / H (DESIGN section 1's pixel convention)."""
+    data = json.loads(path.read_text())
+    for frame in data["frames"]:
+        if frame["image"] not in sizes:
+            continue
+        w, h = sizes[frame["image"]]
+        K = np.asarray(frame["K"], dtype=np.float64)
+        K[0] *= w / float(frame["width"])
+        K[1] *= h / float(frame["height"])
+        frame.update(width=w, height=h, K=K.tolist())
+    path.write_text(json.dumps(data, indent=1))
 
 
 def _copy_given_cameras(given: Path, dest: Path, given_intensity: float, light_intensity: float | None) -> float:

@@ -49,7 +49,7 @@ def undistort_view(linear_dir: Path, out_dir: Path, stem: str, maps, mask: np.nd
     """Write the undistorted ``<stem>.exr``, ``<stem>.sat.png`` (when the linear view has one) and
     ``masks/<stem>.png`` (when ``mask`` is given) under ``out_dir``; return the undistorted mask."""
     img = read_exr(linear_dir / f"{stem}.exr")
-    write_exr(out_dir / f"{stem}.exr", remap(img, maps))
+    write_exr(out_dir / f"{stem}.exr", remap(img, maps), half=True)  # resampled: half floats suffice
     sat = linear_dir / f"{stem}.sat.png"
     if sat.is_file():
         write_mask(out_dir / f"{stem}.sat.png", remap(read_mask(sat).astype(np.float32), maps) > 0)

@@ -1,5 +1,6 @@
 import os
 import stat
+from pathlib import Path
 
 import pytest
 
@@ -80,3 +81,74 @@ def test_temporaries_of_a_killed_writer_are_removed_by_the_next_one(tmp_path):
         t.write_text("new")
     assert sorted(p.name for p in tmp_path.iterdir()) == [alive.name, "file.txt", "stage"]
     assert (tmp_path / "stage" / "x").read_text() == "new"
+
+
+def test_data_reach_the_disk_before_the_rename(tmp_path, monkeypatch):
+    """fsync (the real one, counted) of every file and folder written, before the rename makes
+    them the result: after a power loss a destination is the old or the complete new data. Files
+    written inside an atomic_dir are flushed once, with their folder."""
+    import recon.io.atomic as atomic
+
+    synced, renamed = [], []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        synced.append(os.readlink(f"/proc/self/fd/{fd}"))
+        real_fsync(fd)
+
+    def replace(src, dst):
+        renamed.append((str(src), str(dst), len(synced)))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(atomic.os, "fsync", fsync)
+    monkeypatch.setattr(atomic.os, "replace", replace)
+    with atomic_path(tmp_path / "one.txt") as tmp:
+        tmp.write_text("data")
+    assert synced[0] == str(tmp) and renamed[0][2] == 1  # the file, then the rename
+    assert synced[1] == str(tmp_path)  # then the folder that holds the new name
+    synced.clear()
+    renamed.clear()
+    with atomic_dir(tmp_path / "stage") as tmp:
+        for k in range(3):
+            with atomic_path(tmp / f"{k}.txt") as f:
+                f.write_text(str(k))
+        (tmp / "sub").mkdir()
+        (tmp / "sub" / "x.txt").write_text("x")
+    files = [s for s in synced if s.endswith(".txt")]
+    assert sorted(os.path.basename(s) for s in files) == ["0.txt", "1.txt", "2.txt", "x.txt"]  # once each
+    final = renamed[-1]
+    assert final[1] == str(tmp_path / "stage") and final[2] == len(synced) - 1  # all before it
+    assert synced[-1] == str(tmp_path)
+    assert (tmp_path / "stage" / "sub" / "x.txt").read_text() == "x"
+
+
+def test_existing_folder_is_swapped_in_one_step(tmp_path, monkeypatch):
+    """Replacing a stage folder: one renameat2(RENAME_EXCHANGE) where Linux allows it (no
+    os.replace, so no instant without the folder); else two renames, and the previous folder is
+    put back when the second fails."""
+    import recon.io.atomic as atomic
+
+    dest = tmp_path / "export"
+    dest.mkdir()
+    (dest / "asset.glb").write_text("old")
+    calls = []
+    real_replace = os.replace
+    monkeypatch.setattr(atomic.os, "replace", lambda a, b: (calls.append((a, b)), real_replace(a, b)))
+    with atomic_dir(dest) as tmp:
+        (tmp / "asset.glb").write_text("new")
+    assert (dest / "asset.glb").read_text() == "new" and calls == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["export"]
+
+    monkeypatch.setattr(atomic, "_exchange", lambda a, b: False)
+
+    def failing_replace(a, b):
+        if Path(a).name.startswith(".export.tmp-"):
+            raise OSError(28, "No space left on device", str(b))
+        real_replace(a, b)
+
+    monkeypatch.setattr(atomic.os, "replace", failing_replace)
+    with pytest.raises(OSError, match="No space"):
+        with atomic_dir(dest) as tmp:
+            (tmp / "asset.glb").write_text("newer")
+    assert (dest / "asset.glb").read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["export"]

@@ -62,3 +62,29 @@ def test_texture_map_checks_and_clips(tmp_path, caplog):
         im.read_texture_map(p, "roughness", (1,))
     with pytest.raises(im.ImageError, match=r"absent\.exr: file not found"):
         im.read_texture_map(tmp_path / "absent.exr", "diffuse", (3,))
+
+
+def test_half_float_exr_round_trip_and_fallbacks(tmp_path):
+    """half=True: half the bytes, 11-bit values; float32 where half floats would not keep the
+    image (values beyond 65504, an image of tiny values); NaN/Inf-free either way."""
+    rng = np.random.default_rng(0)
+    a = rng.random((60, 80, 3), dtype=np.float32) * 4.0
+    im.write_exr(tmp_path / "f.exr", a)
+    im.write_exr(tmp_path / "h.exr", a, half=True)
+    h = im.read_exr(tmp_path / "h.exr")
+    assert h.dtype == np.float32 and np.all(np.isfinite(h))
+    big = a >= 2.0**-14  # normal halfs: relative rounding 2^-11
+    assert np.max(np.abs(h[big] / a[big] - 1)) <= 2.0**-11
+    assert (tmp_path / "h.exr").stat().st_size < 0.6 * (tmp_path / "f.exr").stat().st_size
+    for name, img in (("huge", a * 1e5), ("tiny", a * 1e-6)):  # beyond the range / mostly subnormal
+        im.write_exr(tmp_path / f"{name}.exr", img, half=True)
+        np.testing.assert_array_equal(im.read_exr(tmp_path / f"{name}.exr"), img)
+    assert im.half_precision_suffices(a) and not im.half_precision_suffices(a * 1e5)
+    assert not im.half_precision_suffices(a * 1e-6) and im.half_precision_suffices(np.zeros((2, 2)))
+
+
+def test_sRGB_codes_to_linear_lookup_equals_the_formula():
+    codes = np.arange(256, dtype=np.uint8).reshape(16, 16)
+    np.testing.assert_array_equal(im.srgb_codes_to_linear(codes, 8), im.srgb_to_linear(codes.astype(np.float32) / np.float32(255)))
+    c16 = np.array([0, 1, 1000, 65535], dtype=np.uint16)
+    np.testing.assert_allclose(im.srgb_codes_to_linear(c16, 16), im.srgb_to_linear(c16 / 65535.0), rtol=1e-6)

@@ -78,7 +78,7 @@ def test_real_run_reruns_only_what_changed(repo_root, tmp_path):
         _age(p)
     res = tmp_path / "results"
     target = f"{res}/obj/masks/masks.json"
-    assert _snakemake(repo_root, caps, res, target) == {"linearize", "masks"}
+    assert _snakemake(repo_root, caps, res, target) == {"check", "linearize", "masks"}
     _snakemake(repo_root, caps, res, target, dry=False)
     assert _snakemake(repo_root, caps, res, target) == set()
     # every preset has the same (empty) linearize and masks sections: nothing to do
@@ -91,12 +91,12 @@ def test_real_run_reruns_only_what_changed(repo_root, tmp_path):
     assert _snakemake(repo_root, moved, res, target) == set()
     # a photo more, older than the results: its name is tracked, so linearize reruns
     write_png(moved / "obj" / "images" / "0003.png", np.zeros((32, 40, 3)))
-    _age(moved / "obj" / "images" / "0003.png")
-    assert _snakemake(repo_root, moved, res, target) == {"linearize", "masks"}
+    _age(moved / "obj" / "images" / "0003.png")  # (the check step tracks the photos too)
+    assert _snakemake(repo_root, moved, res, target) == {"check", "linearize", "masks"}
     (moved / "obj" / "images" / "0003.png").unlink()
     # a photo less
     (moved / "obj" / "images" / "0002.png").unlink()
-    assert _snakemake(repo_root, moved, res, target) == {"linearize", "masks"}
+    assert _snakemake(repo_root, moved, res, target) == {"check", "linearize", "masks"}
     _write_photos(moved / "obj" / "images")
     for p in (moved / "obj" / "images").iterdir():
         _age(p)
@@ -193,9 +193,8 @@ def test_given_files_rerun_the_stages_that_read_them(repo_root, finished):
     cams = caps / "obj" / "cameras.json"
     cams.write_text("{}")
     _age(cams)
-    # the masks stage separates an object on a table with them, poses passes them through,
-    # init_mesh carves with them, and so on
-    assert _snakemake(repo_root, caps, res, "all") == set(CHAIN[CHAIN.index("masks"):])
+    # poses passes them through; init_mesh carves with them, and so on
+    assert _snakemake(repo_root, caps, res, "all") == set(CHAIN[CHAIN.index("poses"):])
     cams.unlink()
     mesh = caps / "obj" / "init_mesh.ply"
     mesh.write_text("ply\n")

@@ -33,6 +33,7 @@ def test_overlapping_results_are_refused_before_anything_runs(repo_root, tmp_pat
     text = r.stdout + r.stderr
     assert r.returncode != 0
     assert f"results folder '{results.resolve()}'" in text and f"captures folder '{caps.resolve()}'" in text
+    assert 'File "' not in text and "Traceback" not in text  # the message alone (issue 20 item 4)
     assert _tree(caps) == before
     assert not (caps / "out").exists()
 

@@ -1,15 +1,28 @@
 # Helpers shared by every rule: capture discovery, settings, and input functions (get_*).
+import sys
 from pathlib import Path
 
 import recon.config as rc
+from recon.runlock import RunLockError, lock_results
 from recon.io.images import IMAGE_EXTENSIONS
 
 RESULTS = config["results"]
 CAPTURES_ROOT = config["captures"]
 PRESET = config["preset"]
 PRESETS_DIR = str(Path(workflow.basedir) / "config" / "presets")
-CAPTURES = rc.discover_captures(CAPTURES_ROOT)
-rc.check_results_location(RESULTS, CAPTURES_ROOT)
+
+
+def stop(error):
+    """End the run before anything starts with a user error's message alone (no traceback)."""
+    sys.stderr.write(f"recon: error: {error}\n")
+    sys.exit(1)
+
+
+try:
+    CAPTURES = rc.discover_captures(CAPTURES_ROOT)
+    rc.check_results_location(RESULTS, CAPTURES_ROOT)
+except rc.ConfigError as e:
+    stop(e)
 
 
 wildcard_constraints:
@@ -21,10 +34,13 @@ def capture_dir(capture):
 
 
 def get_images(wildcards):
-    """The capture's input photos (every file in images/ with a known extension)."""
+    """The capture's input photos (every file in images/ with a known extension; hidden files
+    such as macOS ._* AppleDouble files are not photos: the check step notes them)."""
     folder = capture_dir(wildcards.capture) / "images"
     return sorted(
-        str(p) for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS
+        str(p)
+        for p in folder.iterdir()
+        if p.suffix.lower() in IMAGE_EXTENSIONS and not p.name.startswith(".")
     )
 
 
@@ -44,14 +60,18 @@ def _sorted_keys(value):
 def get_settings(stage):
     """A params function: the effective settings of ``stage`` for the capture (no preset name,
     no source paths, keys sorted: only a change of the values reruns the stage; the job's script
-    reads the same values with their sources through recon.config.job_settings)."""
+    reads the same values with their sources through recon.config.job_settings).
+    A capture.yaml that cannot be read gives {"error": message}: the DAG of the other captures
+    still builds, and the capture's check step fails with the message."""
 
     def settings(wildcards):
-        return _sorted_keys(
-            rc.effective_settings(
+        try:
+            values = rc.effective_settings(
                 stage, PRESET, capture_dir(wildcards.capture), PRESETS_DIR
             )
-        )
+        except rc.ConfigError as e:
+            return {"error": str(e)}
+        return _sorted_keys(values)
 
     return settings
 
@@ -59,8 +79,12 @@ def get_settings(stage):
 def get_preset(wildcards):
     """The preset the capture runs with (its capture.yaml's, else the config's). Only the report
     tracks it (it names the preset); other stages track the settings the preset gives them.
+    A capture.yaml that cannot be read: the config's (the capture's check step fails).
     """
-    return rc.capture_preset(capture_dir(wildcards.capture), PRESET)
+    try:
+        return rc.capture_preset(capture_dir(wildcards.capture), PRESET)
+    except rc.ConfigError:
+        return PRESET
 
 
 # ---- What a rule tracks of the capture folder ----
@@ -133,12 +157,11 @@ def get_all_targets(wildcards):
 def get_given_masks(wildcards):
     """The capture's own mask files (tracked, so editing one reruns the stage)."""
     folder = capture_dir(wildcards.capture) / "masks"
-    return sorted(str(p) for p in folder.glob("*.png")) if folder.is_dir() else []
-
-
-def get_given_masks_and_cameras(wildcards):
-    """The capture's mask files and its cameras.json (the masks stage reads both)."""
-    return get_given_masks(wildcards) + get_given_cameras_input(wildcards)
+    return (
+        sorted(str(p) for p in folder.glob("*.png") if not p.name.startswith("."))
+        if folder.is_dir()
+        else []
+    )
 
 
 def get_given_masks_dir(wildcards):
@@ -171,25 +194,20 @@ def get_views(wildcards):
 
 
 def get_view_masks_dir(wildcards):
-    """Folder of the masks in the pinhole views (<stem>.png)."""
-    if has_cameras(wildcards.capture):
-        return f"{RESULTS}/{wildcards.capture}/masks"
+    """Folder of the masks in the pinhole views (<stem>.png): the poses stage's, for given
+    cameras and SfM alike (an object standing on a table is separated from it there)."""
     return f"{RESULTS}/{wildcards.capture}/poses/undistorted/masks"
 
 
 def get_view_masks(wildcards):
     """The file that marks the masks of get_view_masks_dir as complete."""
-    if has_cameras(wildcards.capture):
-        return f"{RESULTS}/{wildcards.capture}/masks/masks.json"
     return f"{RESULTS}/{wildcards.capture}/poses/poses.json"
 
 
 def get_plane(wildcards, input):
-    """The support plane (recon.support): plane.json beside the file that marks the view masks
-    complete (masks/ for given cameras, poses/ after SfM); the stage that writes those masks
-    writes it only when it found a plane, and the stages reading it keep their behaviour for
-    an object in the void when it is absent. Derived from the inputs (their changes rerun).
-    """
+    """The support plane (recon.support): poses/plane.json, beside poses.json (an input), which
+    the poses stage writes only when it found a plane; the stages reading it keep their
+    behaviour for an object in the void when it is absent."""
     return str(Path(input.masks).parent / "plane.json")
 
 
@@ -217,3 +235,12 @@ def get_init_mesh(wildcards):
 
 def get_given_init_mesh(wildcards):
     return get_init_mesh(wildcards) if has_init_mesh(wildcards.capture) else ""
+
+
+def lock_run():
+    """Take the results folder's run lock (recon.runlock) or stop, naming the run holding it
+    (the message alone: no traceback, nothing has started)."""
+    try:
+        lock_results(RESULTS)
+    except RunLockError as e:
+        stop(e)

@@ -2,6 +2,9 @@
 # KHR_materials_specular) and USD (.usdz packaging asset.usda and its PNG textures).
 # The whole export/ folder is replaced atomically by recon.export.export_asset, so the log
 # and the benchmark live outside it.
+# Outputs flagged update(): Snakemake would delete the previous asset when the job starts; kept,
+# an interrupted re-export (--forcerun export, then Ctrl-C or a crash) leaves the previous
+# deliverables in place until the new folder replaces them (README "If a run is interrupted").
 
 
 rule export:
@@ -14,9 +17,9 @@ rule export:
         masks=get_view_masks,
         views=get_views,
     output:
-        glb=f"{RESULTS}/{{capture}}/export/asset.glb",
-        usdz=f"{RESULTS}/{{capture}}/export/asset.usdz",
-        usda=f"{RESULTS}/{{capture}}/export/asset.usda",
+        glb=update(f"{RESULTS}/{{capture}}/export/asset.glb"),
+        usdz=update(f"{RESULTS}/{{capture}}/export/asset.usdz"),
+        usda=update(f"{RESULTS}/{{capture}}/export/asset.usda"),
     log:
         f"{RESULTS}/{{capture}}/logs/export.log",
     benchmark:

@@ -6,6 +6,7 @@
 
 rule linearize:
     input:
+        check=f"{RESULTS}/{{capture}}/check/check.json",
         images=get_images,
     output:
         meta=f"{RESULTS}/{{capture}}/linear/linear.json",

@@ -3,7 +3,9 @@
 # undistorted) views, their masks and clipped-pixel masks come from the folders that
 # get_views_dir / get_view_masks_dir name (common.smk).
 # optimize/checkpoints/ is deliberately not an output: Snakemake leaves it in place when the
-# job is killed or fails, and a rerun (--rerun-incomplete) resumes from its last checkpoint.
+# job is killed or fails, and the next run (the profile's rerun-incomplete) resumes from its
+# last checkpoint. Outputs flagged update(): the previous result (minutes of compute) stays in
+# place when the job starts, until the new files replace it.
 
 
 rule optimize:
@@ -13,12 +15,12 @@ rule optimize:
         cameras=get_cameras,
         mesh=f"{RESULTS}/{{capture}}/uv/mesh.obj",
     output:
-        mesh=f"{RESULTS}/{{capture}}/optimize/mesh.obj",
-        diffuse=f"{RESULTS}/{{capture}}/optimize/diffuse.exr",
-        specular=f"{RESULTS}/{{capture}}/optimize/specular.exr",
-        roughness=f"{RESULTS}/{{capture}}/optimize/roughness.exr",
-        log=f"{RESULTS}/{{capture}}/optimize/log.jsonl",
-        summary=f"{RESULTS}/{{capture}}/optimize/summary.json",
+        mesh=update(f"{RESULTS}/{{capture}}/optimize/mesh.obj"),
+        diffuse=update(f"{RESULTS}/{{capture}}/optimize/diffuse.exr"),
+        specular=update(f"{RESULTS}/{{capture}}/optimize/specular.exr"),
+        roughness=update(f"{RESULTS}/{{capture}}/optimize/roughness.exr"),
+        log=update(f"{RESULTS}/{{capture}}/optimize/log.jsonl"),
+        summary=update(f"{RESULTS}/{{capture}}/optimize/summary.json"),
     log:
         f"{RESULTS}/{{capture}}/logs/optimize.log",
     benchmark:

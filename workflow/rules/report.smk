@@ -6,6 +6,8 @@
 # (its files are inputs: adding, removing or editing one reruns the report).
 # Each view's linear image is taken from poses/undistorted/ when the poses stage wrote one
 # there, else from linear/.
+# Outputs flagged update(): the previous report stays in place until the new folder replaces it
+# (README "If a run is interrupted").
 
 
 rule report:
@@ -21,8 +23,8 @@ rule report:
         masks=f"{RESULTS}/{{capture}}/masks/masks.json",
         gt=get_gt_files,
     output:
-        html=f"{RESULTS}/{{capture}}/report/index.html",
-        metrics=f"{RESULTS}/{{capture}}/report/metrics.json",
+        html=update(f"{RESULTS}/{{capture}}/report/index.html"),
+        metrics=update(f"{RESULTS}/{{capture}}/report/metrics.json"),
     log:
         f"{RESULTS}/{{capture}}/logs/report.log",
     benchmark:

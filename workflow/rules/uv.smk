@@ -5,6 +5,7 @@
 
 rule uv:
     input:
+        check=f"{RESULTS}/{{capture}}/check/check.json",
         mesh=get_init_mesh,
     output:
         mesh=f"{RESULTS}/{{capture}}/uv/mesh.obj",

@@ -3,12 +3,12 @@
 from pathlib import Path
 
 from recon.config import build_settings, job_settings
-from recon.logs import configure
+from recon.logs import stage
 from recon.linearize import LinearizeSettings, linearize_capture
 
-configure(snakemake.log[0])  # noqa: F821 (injected by Snakemake)
-linearize_capture(
-    snakemake.params.capture_dir,  # noqa: F821
-    Path(snakemake.output.meta).parent,  # noqa: F821
-    build_settings(LinearizeSettings, job_settings("linearize", snakemake)),  # noqa: F821
-)
+with stage(snakemake.log[0]):  # noqa: F821 (injected by Snakemake); errors: see recon.logs
+    linearize_capture(
+        snakemake.params.capture_dir,  # noqa: F821
+        Path(snakemake.output.meta).parent,  # noqa: F821
+        build_settings(LinearizeSettings, job_settings("linearize", snakemake)),  # noqa: F821
+    )

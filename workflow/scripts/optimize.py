@@ -3,16 +3,16 @@
 from pathlib import Path
 
 from recon.config import job_settings
-from recon.logs import configure
+from recon.logs import stage
 from recon.optimize import optimize_from_dirs, settings_from_dict
 
-configure(snakemake.log[0])  # noqa: F821 (injected by Snakemake)
-optimize_from_dirs(
-    snakemake.params.views_dir,  # noqa: F821
-    snakemake.params.masks_dir,  # noqa: F821
-    snakemake.input.cameras,  # noqa: F821
-    snakemake.input.mesh,  # noqa: F821
-    Path(snakemake.output.mesh).parent,  # noqa: F821
-    settings_from_dict(job_settings("optimize", snakemake)),  # noqa: F821
-    plane_json=snakemake.params.plane,  # noqa: F821
-)
+with stage(snakemake.log[0]):  # noqa: F821 (injected by Snakemake); errors: see recon.logs
+    optimize_from_dirs(
+        snakemake.params.views_dir,  # noqa: F821
+        snakemake.params.masks_dir,  # noqa: F821
+        snakemake.input.cameras,  # noqa: F821
+        snakemake.input.mesh,  # noqa: F821
+        Path(snakemake.output.mesh).parent,  # noqa: F821
+        settings_from_dict(job_settings("optimize", snakemake)),  # noqa: F821
+        plane_json=snakemake.params.plane,  # noqa: F821
+    )

@@ -3,12 +3,12 @@
 from pathlib import Path
 
 from recon.config import build_settings, job_settings
-from recon.logs import configure
+from recon.logs import stage
 from recon.uv import UVSettings, run_uv
 
-configure(snakemake.log[0])  # noqa: F821 (injected by Snakemake)
-run_uv(
-    snakemake.input.mesh,  # noqa: F821
-    Path(snakemake.output.mesh).parent,  # noqa: F821
-    build_settings(UVSettings, job_settings("uv", snakemake)),  # noqa: F821
-)
+with stage(snakemake.log[0]):  # noqa: F821 (injected by Snakemake); errors: see recon.logs
+    run_uv(
+        snakemake.input.mesh,  # noqa: F821
+        Path(snakemake.output.mesh).parent,  # noqa: F821
+        build_settings(UVSettings, job_settings("uv", snakemake)),  # noqa: F821
+    )
