@@ -10,8 +10,7 @@ and no masks in the captures unless ``--given-cameras``):
 
    - registration (views registered by SfM) and pose errors after aligning the cameras to the
      true ones (``recon.metrics.align_cameras``: rotation, centre error / scene size);
-   - mask IoU: the masks the later stages use (``poses/undistorted/masks``, or ``masks/`` with
-     given cameras) against the true silhouettes (the true mesh ray cast through the estimated
+   - mask IoU: the masks the later stages use (``poses/undistorted/masks``) against the true silhouettes (the true mesh ray cast through the estimated
      cameras moved into the true frame);
    - initial-mesh and final accuracy (mean distance of the mesh's surface to the true surface)
      and completeness over the part of the true surface some camera sees (the base on the
@@ -207,8 +206,7 @@ def measure(cap: Path, res: Path, rng_seed: int = 0) -> dict:
     diag = json.loads((res / "poses" / "poses.json").read_text())
     out["support_plane"] = diag.get("support_plane")
     # masks in the stages' views
-    given = (cap / "cameras.json").is_file()
-    mdir = res / "masks" if given else res / "poses" / "undistorted" / "masks"
+    mdir = res / "poses" / "undistorted" / "masks"
     est_in_gt = rotate_cameras(est, sim)
     truth = hit_masks(gt, est_in_gt.frames)
     ious = []

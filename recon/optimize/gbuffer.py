@@ -28,6 +28,8 @@ class GBuffer:
     inv_d2 : (N,) float32 ``1 / |y - o|^2``
     spp : samples per pixel (misses contribute zero)
     shape : (views, h, w)
+    position, normal : (N, 3) float32 surface point and shading normal (world), for shading with
+        a light away from the camera (:mod:`recon.optimize.imaging`)
     """
 
     pixel: torch.Tensor
@@ -36,6 +38,8 @@ class GBuffer:
     inv_d2: torch.Tensor
     spp: int
     shape: tuple
+    position: torch.Tensor | None = None
+    normal: torch.Tensor | None = None
 
     @property
     def grid(self) -> torch.Tensor:
@@ -62,7 +66,7 @@ def build_gbuffer(mesh: Mesh, cameras: list[Camera] | tuple[Camera, ...], spp: i
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x6B0F]))
     W, H = cameras[0].width, cameras[0].height
     jj, ii = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
-    pix_all, uv_all, mu_all, d2_all = [], [], [], []
+    pix_all, uv_all, mu_all, d2_all, pos_all, nrm_all = [], [], [], [], [], []
     for view, cam in enumerate(cameras):
         if (cam.width, cam.height) != (W, H):
             raise ValueError("build_gbuffer: all cameras must have the same image size")
@@ -95,13 +99,16 @@ def build_gbuffer(mesh: Mesh, cameras: list[Camera] | tuple[Camera, ...], spp: i
             uv_all.append(uv.astype(np.float32))
             mu_all.append(mu.astype(np.float32))
             d2_all.append((1.0 / np.maximum(tt * tt, 1e-30)).astype(np.float32))
+            pos_all.append((o + tt[:, None] * d[ok]).astype(np.float32))
+            nrm_all.append(n.astype(np.float32))
     def cat(xs, dt, shp):
         if xs:
             return torch.from_numpy(np.concatenate(xs).astype(dt))
         return torch.zeros(shp, dtype=torch.float32 if dt != np.int64 else torch.int64)
 
     return GBuffer(cat(pix_all, np.int64, (0,)), cat(uv_all, np.float32, (0, 2)), cat(mu_all, np.float32, (0,)),
-                   cat(d2_all, np.float32, (0,)), spp, (len(cameras), H, W))
+                   cat(d2_all, np.float32, (0,)), spp, (len(cameras), H, W),
+                   cat(pos_all, np.float32, (0, 3)), cat(nrm_all, np.float32, (0, 3)))
 
 
 def _lookup(tex: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:

@@ -52,6 +52,7 @@ from recon.optimize.camera_refine import CameraRefinement, scene_extent
 from recon.optimize import regularizers as reg
 from recon.optimize.guard import SurfaceGuard, self_intersecting_faces
 from recon.optimize.largesteps import AdamUniform, LargeSteps
+from recon.optimize.imaging import run_imaging_selection
 from recon.optimize.material import compare, heldout_error, model_from_settings, select_material
 from recon.optimize.params import TexturePyramid, albedo_param, constant_map, roughness_param
 from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, topology_report, unwrap
@@ -561,16 +562,18 @@ def optimize_capture(
     final = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
     model = model_from_settings(settings.specular_channels)
     selection = None
-    if settings.select_material and heldout is not None:
-        t0 = time.perf_counter()
+    train_vs = held_vs = None  # the views at the selections' size with the final model's cameras
+    if heldout is not None and (settings.select_material or settings.select_imaging):
         size = int(settings.select_image_size)
-        log.info("material model selection on %d held-out views", len(heldout))
         train_vs, held_vs = views.at(size), heldout.at(size)
         if run.cameras is not None:
             train_vs = dataclasses.replace(
                 train_vs, cameras=tuple(run.cameras.ref.cameras(range(len(train_vs)), train_vs.cameras)))
         if held_cams is not None:
             held_vs = held_cams["viewset"]
+    if settings.select_material and heldout is not None:
+        t0 = time.perf_counter()
+        log.info("material model selection on %d held-out views", len(heldout))
         fit, selection = select_material(
             final, final_maps, st.covered, train_vs, held_vs, light, tone_scale,
             settings.selection_settings(), spp=int(settings.select_spp), seed=int(settings.seed),
@@ -578,6 +581,13 @@ def optimize_capture(
         final_maps, model = fit.maps, fit.model
         timer.add("material", time.perf_counter() - t0)
         log.info("material model: %s", model.label())
+    imaging = None
+    if settings.select_imaging and heldout is not None:
+        t0 = time.perf_counter()
+        final_maps, model, imaging = run_imaging_selection(
+            settings, final, final_maps, model, st.covered, views, heldout, light, tone_scale, images,
+            train_set=train_vs, heldout_set=held_vs)
+        log.info("imaging model: %s (%.1f s)", ", ".join(imaging["chosen"]) or "ideal", time.perf_counter() - t0)
     topo = topology_report(final.v_pos, final.t_pos_idx)
     n_si = int(self_intersecting_faces(final.v_pos, final.t_pos_idx).sum())
     wall = time.perf_counter() - t_start
@@ -585,6 +595,8 @@ def optimize_capture(
     summary["material_model"] = model.to_dict()
     summary["material_model_label"] = model.label()
     summary["material_selection"] = selection
+    summary["imaging_selection"] = imaging
+    summary["imaging_model"] = imaging["chosen"] if imaging else []
     summary["holdout"] = holdout_info
     summary["camera_refinement"] = camera_info
     _save(run, prog, st, int(stages[-1].iterations), done=True)

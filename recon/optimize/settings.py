@@ -9,6 +9,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from recon.config import ConfigError, build_settings
 from recon.optimize import objective
 from recon.optimize.camera_refine import CameraPrior
@@ -145,6 +147,13 @@ class OptimizeSettings:
     ``camera_lr_rotation_deg``, ``camera_lr_translation`` (fraction of the scene size),
     ``camera_lr_focal`` (log focal), ``camera_lr_principal``; they follow the stage's
     ``lr_scale`` and ``lr_decay`` like the other rates.
+    The camera's imaging (:mod:`recon.optimize.imaging`, DESIGN section 6): ``select_imaging``
+    (after the material model, on the same held-out views) tries the terms of ``imaging_terms``
+    (flash_offset, exposure, ambient, falloff, tone) and keeps each only where it pays off the
+    same way; ``tone`` is tried only for JPEG/PNG captures (``tone_curve: auto`` reads the
+    linearize stage's linear.json beside the views; ``fit`` / ``identity`` force it).
+    ``flash_offset``: the flash's known position in camera coordinates (cameras.json units),
+    used in every fit instead of fitting it.
     """
 
     resolution: int = 256
@@ -209,6 +218,10 @@ class OptimizeSettings:
     camera_lr_focal: float = 0.0005
     camera_lr_principal: float = 0.0002
     camera_align_iterations: int = 40
+    select_imaging: bool = False
+    imaging_terms: tuple = ("flash_offset", "exposure", "ambient", "falloff", "tone")
+    flash_offset: tuple | None = None
+    tone_curve: str = "auto"
 
     def __post_init__(self):
         stages = tuple(
@@ -219,6 +232,18 @@ class OptimizeSettings:
             raise ValueError("stages must list at least one stage")
         object.__setattr__(self, "stages", stages)
         object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
+        object.__setattr__(self, "imaging_terms", tuple(self.imaging_terms))
+        from recon.optimize.imaging import TERMS as IMAGING_TERMS
+
+        if set(self.imaging_terms) - set(IMAGING_TERMS):
+            raise ValueError(f"imaging_terms must be a subset of {IMAGING_TERMS}, got {self.imaging_terms!r}")
+        if self.flash_offset is not None:
+            off = tuple(float(x) for x in self.flash_offset)
+            if len(off) != 3 or not np.all(np.isfinite(off)):
+                raise ValueError(f"flash_offset must be 3 finite numbers (camera coordinates), got {self.flash_offset!r}")
+            object.__setattr__(self, "flash_offset", off)
+        if self.tone_curve not in ("auto", "fit", "identity"):
+            raise ValueError(f"tone_curve must be 'auto', 'fit' or 'identity', got {self.tone_curve!r}")
         choices = {
             "optimizer": OPTIMIZERS,
             "boundary": BOUNDARIES,
@@ -284,7 +309,7 @@ class OptimizeSettings:
     @property
     def holds_out(self) -> bool:
         """Whether views are held out of the optimization (for selection or the plateau test)."""
-        return bool(self.select_material or self.stop_on_plateau)
+        return bool(self.select_material or self.stop_on_plateau or self.select_imaging)
 
     def selection_settings(self):
         return SelectionSettings(
@@ -325,6 +350,8 @@ class OptimizeSettings:
         d = dataclasses.asdict(self)
         d["stages"] = [dataclasses.asdict(s) for s in self.stages]
         d["betas"] = list(self.betas)
+        d["imaging_terms"] = list(self.imaging_terms)
+        d["flash_offset"] = None if self.flash_offset is None else list(self.flash_offset)
         return d
 
 

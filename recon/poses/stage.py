@@ -22,7 +22,7 @@ from recon.poses.inputs import focal_prior, image_names, linear_stems, read_mask
 from recon.poses.mapping import map_views, refine, rescale_model, silhouette_consistency, unregistered_reasons
 from recon.poses.settings import PoseError, PoseSettings
 from recon.poses.undistort import pinhole_camera, undistort_maps, undistort_view
-from recon.segment import read_points_ply, run_tabletop_masks
+from recon.segment import read_points_ply, run_tabletop_masks, triangulate_points
 from recon.metrics import Similarity
 from recon.support import SupportPlane, fit_support_plane, load_plane, save_plane
 
@@ -122,8 +122,17 @@ def _passthrough(given: Path, linear_dir: Path, masks_dir: Path | None, tmp: Pat
     missing = sorted(stems - {c.stem for c in cams})
     if missing:
         log.warning("views without a camera in %s are not used: %s", given, ", ".join(missing))
+    support = {"found": False, "reason": "no masks to replace"}
+    if masks_dir is not None and all((tmp / "undistorted" / "masks" / f"{c.stem}.png").is_file() for c in cams):
+        # an object standing on a table (issue 15): the plane from points triangulated in the
+        # views with the given cameras (the cameras' frame is the user's: it is kept)
+        known = load_cameras(tmp / "cameras.json")
+        pts = triangulate_points([read_exr(tmp / "undistorted" / f"{c.stem}.exr") for c in known], known)
+        _write_points(tmp / "points.ply", pts, np.zeros(len(pts), bool))
+        support = _support_plane_masks(tmp, masks_dir)
     return {"source": "given", "cameras": str(given), "registered": len(cams),
-            "unregistered": {m: "no camera in cameras.json" for m in missing}, "light_intensity": light}
+            "unregistered": {m: "no camera in cameras.json" for m in missing}, "light_intensity": light,
+            "support_plane": support}
 
 
 def _reduce_cameras(path: Path, sizes: dict[str, tuple[int, int]]) -> None:

@@ -354,15 +354,20 @@ def clip_range(camera: Camera, points: np.ndarray) -> dict:
 
 
 def scene_dict(mesh: Mesh, textures: Mapping[str, object], camera: Camera,
-               light_intensity: float, spp: int, r_min: float = R_MIN) -> dict:
-    """The Mitsuba scene of DESIGN section 3 for one view (the plugin must be registered)."""
+               light_intensity: float, spp: int, r_min: float = R_MIN,
+               light_position=None) -> dict:
+    """The Mitsuba scene of DESIGN section 3 for one view (the plugin must be registered).
+
+    ``light_position`` (3,) moves the point light away from the camera centre (a phone's flash,
+    DESIGN section 6).
+    """
     if not np.isfinite(light_intensity) or light_intensity <= 0:
         raise ValueError(f"light_intensity must be a positive number, got {light_intensity}")
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
     mi = load_variant_current()
     bsdf = mi.load_dict(bsdf_dict(textures, r_min))
-    center = np.asarray(camera.center, dtype=float)
+    center = np.asarray(camera.center if light_position is None else light_position, dtype=float)
     return {
         "type": "scene",
         # A point light needs emitter sampling only; the pixel filter is a box (DESIGN 3).
@@ -374,11 +379,25 @@ def scene_dict(mesh: Mesh, textures: Mapping[str, object], camera: Camera,
     }
 
 
+def ambient_scene_dict(flash_scene: dict, ambient: float) -> dict:
+    """The ambient pass of a scene: ``flash_scene`` with its point light replaced by a constant
+    environment of radiance ``ambient`` (hidden from camera rays: the background stays black),
+    sampled with MIS. Rendered apart from the flash and added: Mitsuba 3.9's ``direct``
+    integrator with ``emitter_samples`` > 1 counted the point light twice here."""
+    if not np.isfinite(ambient) or ambient <= 0:
+        raise ValueError(f"ambient must be a radiance > 0, got {ambient}")
+    d = {k: v for k, v in flash_scene.items() if k != "light"}
+    d["integrator"] = {"type": "direct", "emitter_samples": 2, "bsdf_samples": 2, "hide_emitters": True}
+    d["ambient"] = {"type": "constant", "radiance": {"type": "rgb", "value": [float(ambient)] * 3}}
+    return d
+
+
 def render_reference(mesh: Mesh, textures: Mapping[str, object], camera: Camera,
                      light_intensity: float = 1.0, spp: int = 64, seed: int = 0,
                      variant: str | None = None, r_min: float = R_MIN,
-                     alpha: bool = False) -> np.ndarray:
-    """Render one view of the textured mesh lit by the point light at the camera center.
+                     alpha: bool = False, light_position=None, ambient: float = 0.0) -> np.ndarray:
+    """Render one view of the textured mesh lit by the point light at the camera center
+    (or at ``light_position``, plus a constant environment ``ambient``: see :func:`scene_dict`).
 
     Parameters
     ----------
@@ -409,9 +428,12 @@ def render_reference(mesh: Mesh, textures: Mapping[str, object], camera: Camera,
             and not mesh.has_uv:
         raise TextureError("render_reference: texture maps need a mesh with UVs")
     mi = register(variant)
-    d = scene_dict(mesh, textures, camera, light_intensity, spp, r_min)
+    d = scene_dict(mesh, textures, camera, light_intensity, spp, r_min, light_position)
     if alpha:
         d["sensor"]["film"]["pixel_format"] = "rgba"
     scene = mi.load_dict(d)
-    img = mi.render(scene, seed=int(seed), spp=int(spp))
-    return np.array(img, dtype=np.float32)[:, :, : 4 if alpha else 3]
+    img = np.array(mi.render(scene, seed=int(seed), spp=int(spp)), dtype=np.float32)[:, :, : 4 if alpha else 3]
+    if ambient > 0:
+        amb = mi.render(mi.load_dict(ambient_scene_dict(d, ambient)), seed=int(seed) + 1, spp=int(spp))
+        img[:, :, :3] += np.array(amb, dtype=np.float32)[:, :, :3]
+    return img

@@ -64,6 +64,7 @@ class Page:
     material_model: object = None
     material_selection: dict | None = None  # summary.json's evidence of the held-out model choice
     camera_refinement: dict | None = None  # metrics.json's camera_refinement (issue 17)
+    imaging_selection: dict | None = None  # the camera's imaging terms chosen the same way
     cards: list = field(default_factory=list)  # (label, value string)
     viewer_head: str = ""
     viewer_body: str = ""
@@ -153,6 +154,8 @@ def render_page(p: Page) -> str:
         parts.append(_selection_section(p.material_selection))
     if isinstance(p.camera_refinement, dict) and p.camera_refinement.get("mode"):
         parts.append(_camera_section(p.camera_refinement))
+    if isinstance(p.imaging_selection, dict) and p.imaging_selection.get("candidates"):
+        parts.append(_imaging_section(p.imaging_selection))
 
     parts.append("<h2>Optimization and timings</h2>")
     if p.plots:
@@ -218,6 +221,26 @@ def _camera_section(cam: dict) -> str:
                    "(the initial mesh's longest bounding-box side).</p>")
         out.append(_table(rows, ("view", "rotation (deg)", "centre shift")))
     return "".join(out)
+
+
+def _imaging_section(sel: dict) -> str:
+    """The camera's imaging terms tried on held-out views (recon.optimize.imaging), the decision
+    and the fitted values."""
+    rows = []
+    for r in sel["candidates"]:
+        gain, se = r.get("gain"), r.get("se")
+        backward = str(r.get("step", "")).startswith("without ")
+        decision = ("baseline" if gain is None else ("dropped" if r.get("accepted") else "kept") if backward
+                    else ("kept" if r.get("accepted") else "rejected"))
+        rows.append((r.get("step", ""), ", ".join(r.get("terms") or []) or "ideal", r.get("heldout_error"),
+                     "" if gain is None else gain, "" if se is None else se, decision))
+    chosen = ", ".join(sel.get("chosen") or []) or "none (the ideal image formation)"
+    values = {k: v for k, v in (sel.get("values") or {}).items() if k in ("flash_offset", "ambient", "falloff")}
+    return ("<h2>Camera imaging: terms chosen on held-out views</h2>"
+            f"<p>Kept: <b>{html.escape(chosen)}</b>. {html.escape(str(sel.get('criterion', '')))}; "
+            f"error = {html.escape(str(sel.get('metric', '')))}. "
+            f"Fitted: {html.escape(json.dumps(values))}</p>"
+            + _table(rows, ("step", "terms", "held-out error", "gain", "SE", "decision")))
 
 
 def _model_words(model) -> str:

@@ -250,6 +250,12 @@ def make_report(
     cameras_info = camera_refinement(summary)
     if cameras_info is not None:
         metrics["camera_refinement"] = cameras_info
+    imaging = summary.get("imaging_selection") if isinstance(summary.get("imaging_selection"), dict) else None
+    if imaging is not None:  # the camera's imaging terms kept, with each step's gain and SE
+        metrics["imaging_model"] = imaging.get("chosen")
+        metrics["imaging_selection"] = {k: imaging.get(k) for k in (
+            "chosen", "criterion", "metric", "candidates_tried", "flash_offset_given", "values", "candidates",
+            "tone_curve", "seconds")}
     opt_stages = summary.get("stages")
     opt_stages = [st for st in opt_stages if isinstance(st, dict)] if isinstance(opt_stages, list) else []
     metrics["optimize"] = {
@@ -266,7 +272,7 @@ def make_report(
     metrics["settings"] = dataclasses.asdict(settings)
 
     page = page_html.Page(capture=capture, preset=preset, material_model=material, material_selection=selection,
-                          camera_refinement=cameras_info)
+                          camera_refinement=cameras_info, imaging_selection=imaging)
     if metrics["asset"].get("scale_warning"):
         page.notes.append(f"Asset scale: {metrics['asset']['scale_source']}.")
         log.warning("the asset's scale is unknown: %s", metrics["asset"]["scale_source"])

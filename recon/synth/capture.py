@@ -56,19 +56,24 @@ from recon.synth.materials import MaterialFields
 from recon.support import SupportPlane, save_plane
 from recon.synth.shapes import OBJECT_KINDS, flatten_base, make_object
 from recon.render.mitsuba_bsdf import render_reference
+from recon.synth import imaging as phone
 from recon.synth.sensor import SensorModel, exposure_value
 from recon.synth.tabletop import TabletopScene, add_marker_mat, table_texture, tabletop_cameras
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("dng", "exr", "png16", "png8")
+FORMATS = ("dng", "exr", "png16", "png8", "jpg")
 SCENES = ("void", "tabletop", "tabletop_void")
 TABLETOP_FIELDS = ("scene", "elevation_range", "rings", "distance_jitter", "aim_jitter", "roll_jitter",
                    "table_half_size", "table_texture_size", "background", "background_distance",
                    "base_cut", "marker_square")
 """Settings of the tabletop scene only; a void capture's gt/synth.json leaves them out (so the
 files of void captures made before they existed regenerate bit-identically)."""
-_EXT = {"dng": ".dng", "exr": ".exr", "png16": ".png", "png8": ".png"}
+PHONE_FIELDS = ("flash_offset", "ambient", "exposure_jitter", "wb_jitter", "falloff", "tone_curve",
+                "tone_contrast", "jpeg_quality", "falloff_gainmap")
+"""Settings of a phone's imaging (:mod:`recon.synth.imaging`); gt/synth.json records them only when
+one differs from its default (so captures made before they existed regenerate bit-identically)."""
+_EXT = {"dng": ".dng", "exr": ".exr", "png16": ".png", "png8": ".png", "jpg": ".jpg"}
 
 
 EXTENT_RADIUS = 0.95 * 3**0.5
@@ -156,6 +161,27 @@ class SynthSettings:
     marker_square : float
         Tabletop: side of the squares of a ChArUco mat printed on the table under the object
         (object units; 0: no mat).
+    flash_offset : (float, float, float)
+        Phone: the flash's position in camera coordinates (object units at scale 1; x right,
+        y down, z forward), e.g. (0.19, 0, 0): 1 cm beside the lens for a 10-cm object.
+    ambient : float
+        Phone: a constant environment giving this fraction of the flash's irradiance at the
+        object (:func:`recon.synth.imaging.ambient_radiance`).
+    exposure_jitter : float
+        Phone: standard deviation (stops) of a per-view exposure error the EXIF does not record.
+    wb_jitter : float
+        Phone: standard deviation of per-view, per-channel white-balance log gains.
+    falloff : (float, float)
+        Phone: lens falloff ``1 + k1 r^2 + k2 r^4`` (r = 1 in the image corners).
+    tone_curve : str
+        Phone (``format="jpg"`` only): ``none`` (sRGB) or ``phone`` (sRGB + an S-curve).
+    tone_contrast : float
+        Phone: the S-curve's exponent p (1 = no S-curve).
+    jpeg_quality : int
+        JPEG quality (``format="jpg"``).
+    falloff_gainmap : bool
+        Phone DNG (``format="dng"``): the DNG carries the falloff's correction as an OpcodeList3
+        GainMap (17 x 13 points, 3 planes), as phone DNGs do; linearize applies it.
     """
 
     object: str = "blob"
@@ -193,9 +219,21 @@ class SynthSettings:
     background_distance: float = 30.0
     base_cut: float = 0.08
     marker_square: float = 0.0
+    flash_offset: tuple = (0.0, 0.0, 0.0)
+    ambient: float = 0.0
+    exposure_jitter: float = 0.0
+    wb_jitter: float = 0.0
+    falloff: tuple = (0.0, 0.0)
+    tone_curve: str = "none"
+    tone_contrast: float = 1.4
+    jpeg_quality: int = 95
+    falloff_gainmap: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "view_z_range", tuple(float(z) for z in self.view_z_range))
+        object.__setattr__(self, "flash_offset", tuple(float(z) for z in self.flash_offset))
+        object.__setattr__(self, "falloff", tuple(float(z) for z in self.falloff))
+        self._check_phone()
         object.__setattr__(self, "elevation_range", tuple(float(z) for z in self.elevation_range))
         if self.scene not in SCENES:
             raise SynthError(f"scene={self.scene!r}: choose one of {SCENES}")
@@ -246,8 +284,8 @@ class SynthSettings:
             raise SynthError(f"light_intensity={self.light_intensity}: must be positive")
         if self.exposure_variation < 0 or self.exposure_variation > 4:
             raise SynthError(f"exposure_variation={self.exposure_variation}: use 0 to 4 stops")
-        if self.exposure_variation > 0 and self.format != "dng":
-            raise SynthError("exposure_variation needs format='dng' (only RAW files record exposure)")
+        if self.exposure_variation > 0 and self.format not in ("dng", "jpg"):
+            raise SynthError("exposure_variation needs format='dng' or 'jpg' (only they record exposure)")
         if not 0 <= self.mesh_level <= 8:
             raise SynthError(f"mesh_level={self.mesh_level}: use 0 to 8")
         if not 16 <= self.texture_size <= 8192:
@@ -262,6 +300,41 @@ class SynthSettings:
             raise SynthError(f"roughness={self.roughness}: use a value in [{R_MIN}, 1]")
         if not (np.isfinite(self.scale) and 1e-6 <= self.scale <= 1e6):
             raise SynthError(f"scale={self.scale}: use a scene scale in [1e-6, 1e6]")
+
+
+    def _check_phone(self):
+        if len(self.flash_offset) != 3 or not np.all(np.isfinite(self.flash_offset)):
+            raise SynthError(f"flash_offset={self.flash_offset}: give 3 finite numbers (camera coordinates)")
+        if float(np.linalg.norm(self.flash_offset)) >= 0.5 * self.distance:
+            raise SynthError(f"flash_offset={self.flash_offset}: a flash beside the lens is much closer than "
+                             f"the object (|offset| < distance / 2)")
+        if not (np.isfinite(self.ambient) and 0.0 <= self.ambient <= 10.0):
+            raise SynthError(f"ambient={self.ambient}: a fraction of the flash irradiance in [0, 10]")
+        if not 0.0 <= self.exposure_jitter <= 2.0 or not 0.0 <= self.wb_jitter <= 0.5:
+            raise SynthError("exposure_jitter must be in [0, 2] stops and wb_jitter in [0, 0.5]")
+        if len(self.falloff) != 2:
+            raise SynthError(f"falloff={self.falloff}: give (k1, k2) of 1 + k1 r^2 + k2 r^4")
+        k1, k2 = self.falloff
+        if not (np.isfinite(k1) and np.isfinite(k2)) or 1.0 + k1 + k2 <= 0.05 or 1.0 + min(k1, 0.0) <= 0.05:
+            raise SynthError(f"falloff={self.falloff}: the falloff must stay > 0.05 in the corners")
+        from recon.synth.imaging import TONE_CURVES
+
+        if self.tone_curve not in TONE_CURVES:
+            raise SynthError(f"tone_curve={self.tone_curve!r}: choose one of {TONE_CURVES}")
+        if self.tone_curve != "none" and self.format != "jpg":
+            raise SynthError(f"tone_curve={self.tone_curve!r} needs format='jpg' (a phone's JPEG)")
+        if not 0.5 <= self.tone_contrast <= 4.0:
+            raise SynthError(f"tone_contrast={self.tone_contrast}: use 0.5 to 4")
+        if self.falloff_gainmap and (self.format != "dng" or not any(self.falloff)):
+            raise SynthError("falloff_gainmap needs format='dng' and a falloff to correct")
+        if not 50 <= self.jpeg_quality <= 100:
+            raise SynthError(f"jpeg_quality={self.jpeg_quality}: use 50 to 100")
+
+    @property
+    def phone_effects(self) -> bool:
+        """Any of the phone's imaging effects switched on (format jpg counts)."""
+        d = SynthSettings()
+        return self.format == "jpg" or any(getattr(self, k) != getattr(d, k) for k in PHONE_FIELDS)
 
 
 PRESETS: dict[str, SynthSettings] = {
@@ -285,6 +358,12 @@ PRESETS: dict[str, SynthSettings] = {
                                    width=512, height=384),
     "tabletop-mug": SynthSettings(object="mug", scene="tabletop", fov=50.0, distance=5.0, n_views=48,
                                   width=512, height=384, seed=1),
+    # a phone's imaging, every effect on (recon.synth.imaging); switch effects off one by one with
+    # the command line (--flash-offset 0 0 0, --ambient 0, ...). 1 cm flash offset at a 10-cm object.
+    "phone": SynthSettings(object="blob", n_views=32, width=192, height=144, format="jpg", spp=64,
+                           mesh_level=5, texture_size=512, exposure_variation=0.5,
+                           flash_offset=(0.19, 0.0, 0.0), ambient=0.05, exposure_jitter=0.25, wb_jitter=0.03,
+                           falloff=(-0.3, 0.0), tone_curve="phone"),
 }
 
 
@@ -389,24 +468,37 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
     linear_scale = sensor.linear_scale(h_ref)
     # focal length in mm for the DNG tags: f_px * pixel pitch
     focal_mm = float(cams.frames[0].K[0, 0] * sensor.pixel_pitch_um * 1e-3)
+    # 35-mm equivalent: the same horizontal field of view on a 36-mm wide frame
+    focal_35mm = float(cams.frames[0].K[0, 0] * 36.0 / s.width)
     noise_rng = np.random.default_rng(np.random.SeedSequence([int(s.seed), 0xA015E]))
+    views_im = phone.view_imaging(s, len(cams))
+    offset = np.asarray(s.flash_offset) * s.scale
+    l_amb = phone.ambient_radiance(s.ambient, cams.light_intensity, s.distance * s.scale)
+    falloff = phone.falloff_map(s.width, s.height, *s.falloff) if any(s.falloff) else None
+    gainmap = phone.falloff_gainmap(s.width, s.height, *s.falloff) if s.falloff_gainmap else None
 
     with atomic_dir(out_dir) as tmp:
         (tmp / "images").mkdir()
         (tmp / "gt").mkdir()
         for i, cam in enumerate(cams.frames):
             log.info("synth: view %d/%d", i + 1, len(cams))
+            light_pos = phone.light_position(cam, offset) if np.any(offset) else None
             if scene is not None:
-                rgb = scene.render(cam, cams.light_intensity, s.spp, seed=s.seed * 100003 + i)
+                rgb = scene.render(cam, cams.light_intensity, s.spp, seed=s.seed * 100003 + i,
+                                   light_position=light_pos, ambient=l_amb)
                 coverage = scene.object_coverage(cam, s.spp, seed=s.seed * 100003 + i)
                 write_mask(tmp / "gt" / "masks" / f"{cam.stem}.png", coverage > 0.5)
             else:
                 rgba = render_reference(mesh, textures, cam, cams.light_intensity, s.spp,
-                                        seed=s.seed * 100003 + i, alpha=True)
+                                        seed=s.seed * 100003 + i, alpha=True, light_position=light_pos,
+                                        ambient=l_amb)
                 rgb, coverage = np.ascontiguousarray(rgba[:, :, :3]), rgba[:, :, 3]
                 if gt_plane is not None:  # tabletop_void: the same files as its tabletop peer
                     write_mask(tmp / "gt" / "masks" / f"{cam.stem}.png", coverage > 0.5)
             path = tmp / cam.image
+            gt_rgb = rgb  # the scene's radiance, before the phone's imaging (gt/linear)
+            if s.phone_effects:
+                rgb = views_im[i].apply(rgb, falloff)
             if s.format == "dng":
                 from recon.io.dng import write_dng
 
@@ -414,17 +506,25 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
                 cfa = sensor.capture(rgb, e["exposure_time"], e["iso"], e["f_number"],
                                      rng=noise_rng, noise=s.noise)
                 write_dng(path, cfa, sensor, e["exposure_time"], e["iso"], e["f_number"],
-                          focal_length_mm=focal_mm)
+                          focal_length_mm=focal_mm,
+                          opcode_list3=[gainmap.to_opcode()] if s.falloff_gainmap else None)
             else:
                 photo = _add_noise(rgb, sensor, noise_rng) if s.noise else rgb
-                if s.format == "exr":
+                if s.format == "jpg":
+                    e = exposures[i]
+                    # the recorded exposure: linearize divides 2**stops back out
+                    y = photo * np.float32(2.0 ** e["stops"])
+                    phone.write_jpeg_exif(path, phone.tone_encode(y, s.tone_curve, s.tone_contrast),
+                                          e["exposure_time"], e["iso"], e["f_number"], focal_mm,
+                                          focal_35mm, quality=s.jpeg_quality)
+                elif s.format == "exr":
                     write_exr(path, photo)
                 else:
                     write_png(path, linear_to_srgb(photo), bits=16 if s.format == "png16" else 8)
             if s.write_masks:
                 write_mask(tmp / "masks" / f"{cam.stem}.png", coverage > 0.5)
             if s.write_gt_linear:
-                write_exr(tmp / "gt" / "linear" / f"{cam.stem}.exr", rgb * np.float32(linear_scale))
+                write_exr(tmp / "gt" / "linear" / f"{cam.stem}.exr", gt_rgb * np.float32(linear_scale))
         # the light intensity that fits the linearized images (scale 1 by construction)
         gt_cams = CameraSet(cams.frames, float(cams.light_intensity * linear_scale))
         save_cameras(tmp / "gt" / "cameras.json", gt_cams)
@@ -436,6 +536,9 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
         write_exr(tmp / "gt" / "diffuse.exr", diffuse)
         write_exr(tmp / "gt" / "specular.exr", specular)
         write_exr(tmp / "gt" / "roughness.exr", roughness)
+        if s.phone_effects:
+            phone.save_imaging(tmp / "gt" / "imaging.json", phone.imaging_record(
+                s, cams, views_im, exposures, gt_cams.light_intensity, l_amb * linear_scale))
         if gt_plane is not None:
             save_plane(tmp / "gt" / "plane.json", gt_plane, table_half_size=s.table_half_size * s.scale,
                        marker_mat=marker, table=scene is not None)
@@ -462,6 +565,8 @@ def recorded_settings(s: SynthSettings) -> dict:
     d = dataclasses.asdict(s)
     if s.scene == "void":
         d = {k: v for k, v in d.items() if k not in TABLETOP_FIELDS}
+    if not s.phone_effects:
+        d = {k: v for k, v in d.items() if k not in PHONE_FIELDS}
     return d
 
 

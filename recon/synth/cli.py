@@ -4,6 +4,7 @@ Examples:
   python -m recon synth captures/demo --preset demo        (the bundled CI capture)
   python -m recon synth /tmp/blob --views 40 --res 256 --format dng --object blob --seed 0
   python -m recon synth /tmp/torus --object torus --no-cameras --masks
+  python -m recon synth /tmp/phone --preset phone --ambient 0     (a phone's JPEGs, no ambient light)
   python -m recon synth /tmp/mug --scene tabletop --object mug --views 24 --res 256 --format exr
       (the object on a textured table, cameras on hand-held rings above it; gt/masks, gt/plane.json)
 """
@@ -52,6 +53,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--table-texture-size", type=int, dest="table_texture_size")
     p.add_argument("--marker-square", type=float, dest="marker_square",
                    help="tabletop: print a ChArUco mat with squares of this side under the object")
+    g = p.add_argument_group("a phone's imaging (recon.synth.imaging; each effect off by default)")
+    g.add_argument("--flash-offset", type=float, nargs=3, dest="flash_offset", metavar=("X", "Y", "Z"),
+                   help="flash position in camera coordinates (object units; x right, y down, z forward)")
+    g.add_argument("--ambient", type=float, help="ambient light: fraction of the flash irradiance at the object")
+    g.add_argument("--exposure-jitter", type=float, dest="exposure_jitter",
+                   help="per-view exposure error the EXIF does not record, standard deviation in stops")
+    g.add_argument("--wb-jitter", type=float, dest="wb_jitter",
+                   help="per-view white-balance error, standard deviation of the channel log gains")
+    g.add_argument("--falloff", type=float, nargs=2, metavar=("K1", "K2"),
+                   help="radial lens falloff 1 + K1 r^2 + K2 r^4 (r = 1 in the corners)")
+    g.add_argument("--tone-curve", dest="tone_curve", choices=("none", "phone"),
+                   help="format jpg: the phone's tone curve (sRGB + S-curve) or plain sRGB")
+    g.add_argument("--tone-contrast", type=float, dest="tone_contrast", help="the S-curve's exponent")
+    g.add_argument("--jpeg-quality", type=int, dest="jpeg_quality")
+    g.add_argument("--falloff-gainmap", dest="falloff_gainmap", action="store_true", default=None,
+                   help="format dng: the DNG carries the falloff's correction as an OpcodeList3 GainMap")
     p.add_argument("--cameras", dest="write_cameras", action="store_true", default=None,
                    help="write the top-level cameras.json")
     p.add_argument("--no-cameras", dest="write_cameras", action="store_false",
@@ -85,17 +102,21 @@ def command_line(args: argparse.Namespace) -> str:
             "texture_size": "--texture-size", "albedo": "--albedo", "specular": "--specular",
             "roughness": "--roughness", "scale": "--scale", "scene": "--scene", "rings": "--rings",
             "background": "--background", "table_texture_size": "--table-texture-size",
-            "marker_square": "--marker-square"}
+            "marker_square": "--marker-square", "ambient": "--ambient", "exposure_jitter": "--exposure-jitter",
+            "wb_jitter": "--wb-jitter", "tone_curve": "--tone-curve", "tone_contrast": "--tone-contrast",
+            "jpeg_quality": "--jpeg-quality"}
     flags = {"write_cameras": "cameras", "write_masks": "masks", "write_gt_linear": "gt-linear",
-             "noise": "noise"}
+             "noise": "noise", "falloff_gainmap": "falloff-gainmap"}
     parts = ["python -m recon synth", str(args.out_dir)]
     if args.preset:
         parts += ["--preset", args.preset]
     for key, flag in opts.items():
         if getattr(s, key) != getattr(base, key) or (key == "height" and s.width != base.width):
             parts += [flag, str(getattr(s, key))]
-    if s.elevation_range != base.elevation_range:
-        parts += ["--elevations", *map(str, s.elevation_range)]
+    for key, flag in (("elevation_range", "--elevations"), ("flash_offset", "--flash-offset"),
+                      ("falloff", "--falloff")):
+        if getattr(s, key) != getattr(base, key):
+            parts += [flag, *map(str, getattr(s, key))]
     for key, name in flags.items():
         if getattr(s, key) != getattr(base, key):
             parts.append(f"--{name}" if getattr(s, key) else f"--no-{name}")

@@ -32,7 +32,7 @@ from recon.io.cameras import Camera, CameraSet, intrinsics, look_at
 from recon.io.mesh import Mesh
 from recon.support import SupportPlane
 from recon.synth.noise import dots, fbm
-from recon.render.mitsuba_bsdf import bsdf_dict, clip_range, mitsuba_mesh, register, scene_dict
+from recon.render.mitsuba_bsdf import ambient_scene_dict, bsdf_dict, clip_range, mitsuba_mesh, register, scene_dict
 from recon.render.mitsuba_bsdf import render_reference
 
 TABLE_SPECULAR = 0.04
@@ -116,7 +116,7 @@ def tabletop_cameras(settings, target=(0.0, 0.0, 0.0)) -> CameraSet:
     """Hand-held rings above the table (see the module docstring); ``settings`` a SynthSettings."""
     s = settings
     rng = np.random.default_rng(np.random.SeedSequence([int(s.seed), 0x7AB1E]))
-    ext = {"dng": ".dng", "exr": ".exr", "png16": ".png", "png8": ".png"}[s.format]
+    ext = {"dng": ".dng", "exr": ".exr", "png16": ".png", "png8": ".png", "jpg": ".jpg"}[s.format]
     K = intrinsics(s.width, s.height, s.fov)
     lo, hi = s.elevation_range
     n_rings = max(1, min(s.rings, s.n_views))
@@ -171,11 +171,14 @@ class TabletopScene:
     def plane(self) -> SupportPlane:
         return SupportPlane(np.array([0.0, 0.0, 1.0]), -self.plane_z)
 
-    def render(self, cam: Camera, light_intensity: float, spp: int, seed: int) -> np.ndarray:
-        """(H, W, 3) float32 linear radiance of the whole scene for ``cam``."""
+    def render(self, cam: Camera, light_intensity: float, spp: int, seed: int, light_position=None,
+               ambient: float = 0.0) -> np.ndarray:
+        """(H, W, 3) float32 linear radiance of the whole scene for ``cam`` (flash at
+        ``light_position``, default the camera centre; ``ambient``: a room of that radiance, the
+        backdrop glowing with it where there is one, else a constant environment)."""
 
         mi = register()
-        d = scene_dict(self.mesh, self.textures, cam, light_intensity, spp)
+        d = scene_dict(self.mesh, self.textures, cam, light_intensity, spp, light_position=light_position)
         d["table"] = mitsuba_mesh(self.table, "table", bsdf=mi.load_dict(bsdf_dict(self.table_textures)))
         corners = [self.mesh.v_pos, self.table.v_pos]
         if self.background > 0:
@@ -188,8 +191,15 @@ class TabletopScene:
                                                        for sz in (-1, 1)]))
         d["sensor"].update(clip_range(cam, np.concatenate(corners)))
         scene = mi.load_dict(d)
-        img = mi.render(scene, seed=int(seed), spp=int(spp))
-        return np.array(img, dtype=np.float32)[:, :, :3]
+        img = np.array(mi.render(scene, seed=int(seed), spp=int(spp)), dtype=np.float32)[:, :, :3]
+        if ambient > 0:
+            da = ambient_scene_dict(d, ambient)
+            if "background" in da:  # the closed backdrop would hide the environment: it is the room's light
+                da["background"] = {**da["background"],
+                                    "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [float(ambient)] * 3}}}
+            amb = mi.render(mi.load_dict(da), seed=int(seed) + 1, spp=int(spp))
+            img += np.array(amb, dtype=np.float32)[:, :, :3]
+        return img
 
     def object_coverage(self, cam: Camera, spp: int, seed: int) -> np.ndarray:
         """(H, W) float32 fraction of each pixel's footprint on the object alone."""

@@ -17,6 +17,9 @@ def test_export_rule(model, tmp_path, repo_root):
     (captures / "demo" / "images" / "0000.exr").touch()
     shutil.copytree(model.folder / "optimize", results / "demo" / "optimize")
     shutil.copytree(model.folder / "poses", results / "demo" / "poses")
+    # the export reads the poses stage's views and masks marker (poses.json): for the support
+    # plane (poses/plane.json, absent here: no plane) and a marker mat's views
+    (results / "demo" / "poses" / "poses.json").write_text("{}")
     (captures / "demo" / "capture.yaml").write_text("export:\n  meters_per_unit: 0.5\n")
     target = results / "demo" / "export" / "asset.glb"
     proc = subprocess.run(

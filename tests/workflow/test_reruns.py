@@ -193,9 +193,8 @@ def test_given_files_rerun_the_stages_that_read_them(repo_root, finished):
     cams = caps / "obj" / "cameras.json"
     cams.write_text("{}")
     _age(cams)
-    # the masks stage separates an object on a table with them, poses passes them through,
-    # init_mesh carves with them, and so on
-    assert _snakemake(repo_root, caps, res, "all") == set(CHAIN[CHAIN.index("masks"):])
+    # poses passes them through; init_mesh carves with them, and so on
+    assert _snakemake(repo_root, caps, res, "all") == set(CHAIN[CHAIN.index("poses"):])
     cams.unlink()
     mesh = caps / "obj" / "init_mesh.ply"
     mesh.write_text("ply\n")

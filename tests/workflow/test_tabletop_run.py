@@ -1,9 +1,9 @@
 """A small tabletop capture through the whole workflow up to the asset (issue 15 item 6; slow:
-~3 min on 2 cores, run by CI beside the demo).
+65 s on the shared 2-core machine, capture included; .ci/run runs it after the demo).
 
 The mug of tests/_tabletop_scene.py (24 hand-held views of 192 x 144 above a lit wooden table,
-true cameras given) with a tiny optimization: the masks stage separates the mug from the table
-and writes masks/plane.json, the visual hull and the optimized surface stay above the plane with
+true cameras given) with a tiny optimization: the poses stage separates the mug from the table
+(poses/undistorted/masks) and writes poses/plane.json, the visual hull and the optimized surface stay above the plane with
 a flat base on it, and the asset stands upright on y = 0. Numbers against the ground truth."""
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import sys
 import numpy as np
 import pytest
 from _tabletop_scene import tabletop_capture
+from scipy.spatial import Delaunay
 
 from recon.io.images import read_mask
 from recon.io.mesh import read_obj, read_ply
@@ -53,21 +54,23 @@ def run(repo_root, tmp_path_factory):
 
 def test_masks_separate_the_object_and_find_the_plane(run):
     cap, res = run
-    summary = json.loads((res / "masks" / "masks.json").read_text())
+    summary = json.loads((res / "poses" / "masks.json").read_text())
     assert summary["method"] == "tabletop"
+    assert json.loads((res / "masks" / "masks.json").read_text())["method"] == "flash_falloff"  # (for SfM)
     ious = []
     for stem in summary["views"]:
-        m, g = read_mask(res / "masks" / f"{stem}.png"), read_mask(cap / "gt" / "masks" / f"{stem}.png")
+        m = read_mask(res / "poses" / "undistorted" / "masks" / f"{stem}.png")
+        g = read_mask(cap / "gt" / "masks" / f"{stem}.png")
         ious.append((m & g).sum() / (m | g).sum())
     assert np.mean(ious) > 0.95 and np.min(ious) > 0.85, ious
-    found, true = load_plane(res / "masks" / "plane.json"), load_plane(cap / "gt" / "plane.json")
+    found, true = load_plane(res / "poses" / "plane.json"), load_plane(cap / "gt" / "plane.json")
     assert np.degrees(np.arccos(found.normal @ true.normal)) < 1.0
     assert abs(true.height(found.point[None])[0]) < 0.02
 
 
 def test_surfaces_stay_above_the_plane_with_a_flat_base(run):
     cap, res = run
-    plane = load_plane(res / "masks" / "plane.json")
+    plane = load_plane(res / "poses" / "plane.json")
     gt = read_obj(cap / "gt" / "mesh.obj")
     lo, hi = gt.bbox()
     unit = float(np.max(hi - lo))
@@ -77,9 +80,14 @@ def test_surfaces_stay_above_the_plane_with_a_flat_base(run):
         h = plane.height(mesh.v_pos)
         assert h.min() > -1e-6 * unit
         assert (np.abs(h) < 1e-6 * unit).sum() >= 10  # the closed flat base lies on the plane
-        # nothing of the table or the backdrop: every part of the surface is near the object
-        d = distance_to_mesh(gt, mesh.sample_surface(20000, np.random.default_rng(0))) / unit
-        assert (d > 0.05).mean() < 0.01, (d > 0.05).mean()
+        # nothing of the table or the backdrop: no part of the surface far from the object lies
+        # below the table or outside the object's footprint on it (the hull's lid over the cup's
+        # opening is far from the object, but over its footprint)
+        p = mesh.sample_surface(20000, np.random.default_rng(0))
+        d = distance_to_mesh(gt, p) / unit
+        B = plane.basis()[:2]
+        outside = (Delaunay(gt.v_pos @ B.T).find_simplex(p @ B.T) < 0) | (plane.height(p) < -0.02 * unit)
+        assert ((d > 0.02) & outside).mean() < 0.01, ((d > 0.02) & outside).mean()
     log = [json.loads(x) for x in (res / "optimize" / "log.jsonl").read_text().splitlines()]
     assert all("plane_projected" in r for r in log)
 

@@ -164,11 +164,6 @@ def get_given_masks(wildcards):
     )
 
 
-def get_given_masks_and_cameras(wildcards):
-    """The capture's mask files and its cameras.json (the masks stage reads both)."""
-    return get_given_masks(wildcards) + get_given_cameras_input(wildcards)
-
-
 def get_given_masks_dir(wildcards):
     return (
         str(capture_dir(wildcards.capture) / "masks")
@@ -199,25 +194,20 @@ def get_views(wildcards):
 
 
 def get_view_masks_dir(wildcards):
-    """Folder of the masks in the pinhole views (<stem>.png)."""
-    if has_cameras(wildcards.capture):
-        return f"{RESULTS}/{wildcards.capture}/masks"
+    """Folder of the masks in the pinhole views (<stem>.png): the poses stage's, for given
+    cameras and SfM alike (an object standing on a table is separated from it there)."""
     return f"{RESULTS}/{wildcards.capture}/poses/undistorted/masks"
 
 
 def get_view_masks(wildcards):
     """The file that marks the masks of get_view_masks_dir as complete."""
-    if has_cameras(wildcards.capture):
-        return f"{RESULTS}/{wildcards.capture}/masks/masks.json"
     return f"{RESULTS}/{wildcards.capture}/poses/poses.json"
 
 
 def get_plane(wildcards, input):
-    """The support plane (recon.support): plane.json beside the file that marks the view masks
-    complete (masks/ for given cameras, poses/ after SfM); the stage that writes those masks
-    writes it only when it found a plane, and the stages reading it keep their behaviour for
-    an object in the void when it is absent. Derived from the inputs (their changes rerun).
-    """
+    """The support plane (recon.support): poses/plane.json, beside poses.json (an input), which
+    the poses stage writes only when it found a plane; the stages reading it keep their
+    behaviour for an object in the void when it is absent."""
     return str(Path(input.masks).parent / "plane.json")
 
 

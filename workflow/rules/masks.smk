@@ -2,16 +2,12 @@
 # The capture's masks/<stem>.png are used as given; other views get a mask derived from the
 # linear image (flash falloff: see recon.masks). recon.masks.run_masks replaces the whole
 # masks/ folder atomically; masks.json (per-view source and coverage) is the declared output.
-# A capture with its own cameras.json: an object standing on a table is separated from it
-# (recon.segment) and masks/plane.json records the support plane when one is found (after
-# SfM the poses stage does the same on its undistorted views: poses/plane.json).
 
 
 rule masks:
     input:
         linear=f"{RESULTS}/{{capture}}/linear/linear.json",
         given=get_given_masks,
-        cameras=get_given_cameras_input,
     output:
         summary=f"{RESULTS}/{{capture}}/masks/masks.json",
     log:
@@ -22,8 +18,7 @@ rule masks:
         "../../envs/recon.yaml"
     params:
         given_dir=untracked(get_given_masks_dir),
-        cameras=untracked(get_given_cameras),
-        capture_files=capture_files(get_given_masks_and_cameras),
+        capture_files=capture_files(get_given_masks),
         stems=get_image_stems,
         settings=get_settings("masks"),
     script:

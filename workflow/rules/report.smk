@@ -5,7 +5,8 @@
 # results/<capture>/benchmarks/*.tsv; metrics against <capture>/gt/ when that folder exists
 # (its files are inputs: adding, removing or editing one reruns the report).
 # Each view's linear image is taken from poses/undistorted/ when the poses stage wrote one
-# there, else from linear/.
+# there, else from linear/; its mask likewise from poses/undistorted/masks/ (an object on a
+# table: the masks without the table), else masks/.
 # Outputs flagged update(): the previous report stays in place until the new folder replaces it
 # (README "If a run is interrupted").
 

@@ -13,7 +13,7 @@ with stage(snakemake.log[0]):  # noqa: F821 (injected by Snakemake); errors: see
         glb=snakemake.input.glb,  # noqa: F821
         cameras=snakemake.input.cameras,  # noqa: F821
         image_dirs=[snakemake.params.undistorted, Path(snakemake.input.linear).parent],  # noqa: F821
-        mask_dirs=[Path(snakemake.input.masks).parent],  # noqa: F821
+        mask_dirs=[Path(snakemake.params.undistorted) / "masks", Path(snakemake.input.masks).parent],  # noqa: F821
         out_dir=Path(snakemake.output.html).parent,  # noqa: F821
         settings=build_settings(ReportSettings, job_settings("report", snakemake)),  # noqa: F821
         gt_dir=Path(snakemake.params.capture_dir) / "gt",  # noqa: F821 (skipped when absent)
