@@ -36,7 +36,9 @@ STAGES = ("linearize", "masks", "poses", "init_mesh", "uv", "optimize", "export"
 _SLURM_KILLED = re.compile(r"\*\*\* (?:JOB|STEP) [\d.]+ ON \S+ CANCELLED AT (\S+)( DUE TO [A-Z ]+?)? \*\*\*")
 _OOM = re.compile(r"oom[-_ ]kill|out of memory", re.IGNORECASE)
 _ERROR_LINE = re.compile(r"^\S+ (?:ERROR|CRITICAL) ")
-_EXCEPTION_LINE = re.compile(r"^[A-Za-z_.]*(?:Error|Exception|Interrupt)\b.*")
+# the last line of a Python traceback ("recon.io.images.ImageError: <message>"), not Snakemake's
+# own summary lines ("WorkflowError:", "CalledProcessError in file ...")
+_EXCEPTION_LINE = re.compile(r"^(?:[A-Za-z_]\w*\.)*(?!WorkflowError)([A-Za-z_]\w*(?:Error|Exception|Interrupt)): \S.*")
 
 
 @dataclass
@@ -96,8 +98,8 @@ def _failure_reason(stage_log: Path, slurm_logs: list[Path]) -> tuple[str, str]:
         return error.split(": ", 1)[-1], str(stage_log)
     for source, src_lines in ((job_log, job_lines), (stage_log, lines)):
         exc = _last_match(src_lines, _EXCEPTION_LINE)
-        if exc:
-            return exc, str(source)
+        if exc:  # without the module path: "ImageError: <message>"
+            return exc[_EXCEPTION_LINE.match(exc).start(1):], str(source)
     tail = next((line.strip() for line in reversed(lines) if line.strip()), "")
     return (f"stopped without an error message; last log line: {tail}" if tail
             else "stopped without an error message"), str(stage_log)

@@ -83,3 +83,20 @@ def test_a_traceback_without_an_error_line(tmp_path):
         "Traceback (most recent call last):\n  File \"x.py\", line 1\nValueError: bad black level\n")
     st = capture_status(results, "c")
     assert st.reason == "ValueError: bad black level"
+
+
+def test_the_error_in_a_job_log(tmp_path):
+    """Without an ERROR line in the stage's log, the traceback's last line in the job's output."""
+    results, slurm = tmp_path / "results", tmp_path / "slurm_logs"
+    (results / "d" / "logs").mkdir(parents=True)
+    (results / "d" / "logs" / "linearize.log").write_text("15:20:33 INFO recon.linearize.stage: 6 images\n")
+    group = slurm / "group_prepare_init_mesh_linearize_masks_poses_uv"
+    group.mkdir(parents=True)
+    (group / "54.log").write_text(
+        "rule linearize:\n    wildcards: capture=d\nTraceback (most recent call last):\n"
+        "recon.io.images.ImageError: /c/d/images/0002.exr: not a readable OpenEXR file\n"
+        "CalledProcessError in file \"/w/workflow/rules/linearize.smk\", line 23:\n"
+        "Error in rule linearize:\nWorkflowError:\nAt least one job did not complete successfully.\n")
+    st = capture_status(results, "d", slurm)
+    assert st.reason == "ImageError: /c/d/images/0002.exr: not a readable OpenEXR file"
+    assert st.log.endswith("54.log")

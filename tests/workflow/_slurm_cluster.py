@@ -71,15 +71,19 @@ def account_and_partition() -> tuple[str, str]:
 
 
 def make_profile(dest: Path, retries: int | None = None, set_resources: dict | None = None,
-                 status_check_seconds: int = 2) -> Path:
+                 status_check_seconds: int = 2, threads: int | None = 1) -> Path:
     """profiles/slurm/config.yaml copied to ``dest`` with the cluster's account and partition
     filled in (as a user does), the first status check after ``status_check_seconds`` (the
-    plugin waits 40 s by default), and optional overrides."""
+    plugin waits 40 s by default), every stage on ``threads`` CPUs (small jobs: the test node
+    has the machine's real CPUs, 2 here, and two jobs should run side by side), and optional
+    overrides."""
     cfg = yaml.safe_load((REPO / "profiles" / "slurm" / "config.yaml").read_text())
     account, partition = account_and_partition()
     cfg["default-resources"].update({"slurm_account": account, "slurm_partition": partition})
     cfg["slurm-init-seconds-before-status-checks"] = status_check_seconds
     cfg["slurm-keep-successful-logs"] = True  # the tests read every job's log
+    if threads is not None:
+        cfg["set-threads"] = {rule: threads for rule in cfg["set-threads"]}
     if retries is not None:
         cfg["retries"] = retries
     for rule, values in (set_resources or {}).items():

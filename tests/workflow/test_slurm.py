@@ -20,6 +20,7 @@ by scripts/run_demo.sh just before); without it the test runs the demo locally t
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import shutil
@@ -48,9 +49,12 @@ pytestmark = pytest.mark.slurm
 
 N_SYNTH = 10
 BROKEN = "syn04"  # one photo of this capture is not an image: its linearize fails
+ITERATIONS = 100  # optimize of the killed capture (checkpoint every 5)
 STAGES_BEFORE_OPTIMIZE = ("linear", "masks", "poses", "init_mesh", "uv")
-# Keys of the stages' JSON files that hold timings (they differ between any two runs).
-_TIMING_KEY = re.compile(r"(^|_)(s|seconds|time|timings|elapsed)$|_s$")
+# Keys of the stages' JSON files that differ between any two runs: timings, and the diagnostics
+# of COLMAP's mapping trials (multithreaded: a trial registered 25 of 32 views in one run and
+# 26 in another, while the cameras the stage chose agreed to 15 digits).
+_TIMING_KEY = re.compile(r"(^|_)(s|seconds|time|timings|elapsed)$|_s$|^trials$")
 
 
 @pytest.fixture(scope="module")
@@ -116,11 +120,13 @@ def test_every_job_of_the_shelf_ran_in_slurm(shelf):
 
 def test_the_shelf_ran_in_parallel(shelf):
     jobs = shelf["jobs"]
-    prepare = [j for j in jobs if j["Comment"].startswith("rule_prepare")]
-    assert len(prepare) == N_SYNTH + 1
-    submits = sorted(time.mktime(time.strptime(j["Submit"], "%Y-%m-%dT%H:%M:%S")) for j in prepare)
+    prepare = sorted((j for j in jobs if j["Comment"].startswith("rule_prepare")),
+                     key=lambda j: int(j["JobIDRaw"]))
+    assert len(prepare) == N_SYNTH + 2  # every capture's, and the broken capture's retry
+    first = prepare[:N_SYNTH + 1]  # the first submission of every capture
+    submits = sorted(time.mktime(time.strptime(j["Submit"], "%Y-%m-%dT%H:%M:%S")) for j in first)
     # all captures' first jobs were submitted at once, not one after another
-    assert submits[-1] - submits[0] <= 5, [j["Submit"] for j in prepare]
+    assert submits[-1] - submits[0] <= 5, [j["Submit"] for j in first]
     spans = sorted((j["Start"], j["End"]) for j in jobs)
     assert any(spans[k + 1][0] < spans[k][1] for k in range(len(spans) - 1)), "no two jobs overlapped"
 
@@ -142,12 +148,34 @@ def test_the_shelf_summary_names_the_failure(shelf):
     assert re.search(rf"^\| {BROKEN} \| failed \| 0/8 \| linearize \| .*0002\.exr", text, re.MULTILINE)
 
 
-def _strip_timings(value):
+def _comparable(value, capture: str):
+    """A stage's JSON without timings, its paths from the capture's folder name on (the two runs
+    read the capture from different folders)."""
     if isinstance(value, dict):
-        return {k: _strip_timings(v) for k, v in value.items() if not _TIMING_KEY.search(k)}
+        return {k: _comparable(v, capture) for k, v in value.items() if not _TIMING_KEY.search(k)}
     if isinstance(value, list):
-        return [_strip_timings(v) for v in value]
+        return [_comparable(v, capture) for v in value]
+    if isinstance(value, str) and "/" in value:
+        at = value.rfind(f"{capture}/")
+        return value[at:] if at >= 0 else (capture if value.endswith(f"/{capture}") else value)
     return value
+
+
+def _assert_close(a, b, where: str) -> None:
+    """Equal JSON values, floats to 1e-9 (COLMAP's bundle adjustment sums in another order with
+    another number of threads: the demo's poses differed in the 15th digit)."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and sorted(a) == sorted(b), where
+        for k in a:
+            _assert_close(a[k], b[k], f"{where}:{k}")
+    elif isinstance(a, list):
+        assert isinstance(b, list) and len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _assert_close(x, y, f"{where}[{i}]")
+    elif isinstance(a, float) or isinstance(b, float):
+        assert math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12), (where, a, b)
+    else:
+        assert a == b, (where, a, b)
 
 
 def _files(folder: Path) -> set[str]:
@@ -162,22 +190,26 @@ def _compare_with_local(slurm: Path, local: Path):
             continue
         a, b = local / rel, slurm / rel
         if rel.endswith(".json"):
-            assert _strip_timings(json.loads(a.read_text())) == _strip_timings(json.loads(b.read_text())), rel
+            _assert_close(_comparable(json.loads(a.read_text()), slurm.name),
+                          _comparable(json.loads(b.read_text()), slurm.name), rel)
+        elif rel.startswith(("poses/sparse/", "poses/work/")):
+            continue  # COLMAP's own model and database: dates, and floats summed in another order
         else:
             assert a.read_bytes() == b.read_bytes(), f"{rel} differs between the local and the SLURM run"
     ma = json.loads((local / "report" / "metrics.json").read_text())
     mb = json.loads((slurm / "report" / "metrics.json").read_text())
     assert mb["optimize"]["iterations"] == ma["optimize"]["iterations"]
-    # The optimizer renders with drjit's thread pool, whose accumulation order varies between
-    # runs: two local runs of the same capture differ by up to ~10% in these metrics
-    # (docs/cluster.md); a different result (another preset, lost views) differs by far more.
+    # The optimizer renders with drjit's thread pool, whose accumulation order can vary between
+    # runs: measured SLURM against local, 0.0% (syn00), 1.4-1.6% (the demo) and 5% (a capture of
+    # 8 views at 96 px) in these metrics (docs/cluster.md); a different result (another preset,
+    # lost views) differs by far more.
     for key in ("accuracy", "completeness", "image_rmse"):
         if key in ma.get("metrics", {}):
             va, vb = ma["metrics"][key], mb["metrics"][key]
-            assert abs(vb - va) <= 0.25 * abs(va) + 1e-4, (key, va, vb)
+            assert abs(vb - va) <= 0.15 * abs(va) + 1e-4, (key, va, vb)
     for key in ("final_loss",):
         va, vb = ma["optimize"][key], mb["optimize"][key]
-        assert abs(vb - va) <= 0.25 * abs(va), (key, va, vb)
+        assert abs(vb - va) <= 0.15 * abs(va), (key, va, vb)
 
 
 def test_shelf_results_equal_a_local_run(shelf, tmp_path):
@@ -218,19 +250,27 @@ def _job_pids(job_id: str) -> list[int]:
     return pids
 
 
+def _checkpoint_mtime(optimize_dir: Path) -> float | None:
+    ckpt = optimize_dir / "checkpoints" / "last.pt"
+    return ckpt.stat().st_mtime_ns if ckpt.is_file() else None
+
+
 def _checkpoint_iteration(optimize_dir: Path) -> int | None:
-    """The iteration of optimize/checkpoints/last.pt, from the stage's log.jsonl record count."""
+    """The iteration optimize/checkpoints/last.pt resumes at (read once its job is held still)."""
     ckpt = optimize_dir / "checkpoints" / "last.pt"
     if not ckpt.is_file():
         return None
     import torch
 
-    for _ in range(5):  # it may be replaced while we read
-        try:
-            return int(torch.load(ckpt, map_location="cpu", weights_only=False)["iteration"])
-        except Exception:  # noqa: BLE001 (a checkpoint being replaced)
-            time.sleep(0.2)
-    return None
+    return int(torch.load(ckpt, map_location="cpu", weights_only=False)["iteration"])
+
+
+def _hold(job_id: str) -> None:
+    """Stop the job's processes (SIGSTOP): it stays RUNNING in SLURM and uses no CPU."""
+    pids = _job_pids(job_id)
+    assert pids, f"no processes of job {job_id} found"
+    for pid in pids:
+        os.kill(pid, signal.SIGSTOP)
 
 
 def _running_job(log: Path, proc: subprocess.Popen, rule: str = "optimize") -> str | None:
@@ -253,7 +293,7 @@ def _start(args: list[str], log: Path) -> subprocess.Popen:
 def test_killed_jobs_leave_nothing_and_optimize_resumes(cluster, tmp_path):
     captures = tmp_path / "captures"
     settings = json.loads(json.dumps(TINY_SETTINGS))
-    settings["optimize"]["stages"][0]["iterations"] = 60
+    settings["optimize"]["stages"][0]["iterations"] = ITERATIONS
     make_tiny_capture(captures / "long", seed=7, settings=settings)
     results = tmp_path / "results"
     out = results / "long" / "optimize"
@@ -268,15 +308,16 @@ def test_killed_jobs_leave_nothing_and_optimize_resumes(cluster, tmp_path):
     log1 = tmp_path / "run1.log"
     proc = _start(["--profile", str(short), *config], log1)
     job1 = wait_for(lambda: _running_job(log1, proc), 600, "the optimize job to run")
-    wait_for(lambda: _checkpoint_iteration(out), 300, "a first checkpoint", poll=0.3)
-    for pid in _job_pids(job1):
-        os.kill(pid, signal.SIGSTOP)
+    # the stage's start (iteration 0), then its first iterations
+    start = wait_for(lambda: _checkpoint_mtime(out), 300, "a first checkpoint", poll=0.1)
+    wait_for(lambda: _checkpoint_mtime(out) != start, 300, "a checkpoint after iterations", poll=0.1)
+    _hold(job1)
     assert proc.wait(timeout=400) != 0
     (state1,) = [j["State"] for j in sacct([job1])]
     assert state1 == "TIMEOUT", log1.read_text()[-2000:]
     assert not any(p.exists() for p in outputs), "a job killed by SLURM left outputs"
     it1 = _checkpoint_iteration(out)
-    assert it1 and it1 < 60
+    assert 0 < it1 < ITERATIONS
     summary = json.loads((results / "summary.json").read_text())["captures"][0]
     assert summary["status"] == "failed" and summary["failed_stage"] == "optimize"
     assert "time limit" in summary["reason"], summary
@@ -295,26 +336,26 @@ def test_killed_jobs_leave_nothing_and_optimize_resumes(cluster, tmp_path):
     stage_log = results / "long" / "logs" / "optimize.log"
     wait_for(lambda: stage_log.is_file() and f"resuming from checkpoint: stage 0, iteration {it1}"
              in stage_log.read_text(), 300, "the rerun to resume")
-    wait_for(lambda: (_checkpoint_iteration(out) or 0) > it1, 300, "a newer checkpoint", poll=0.3)
-    for pid in _job_pids(job2):  # hold it, so that it cannot finish before the cancel arrives
-        os.kill(pid, signal.SIGSTOP)
+    first = _checkpoint_mtime(out)
+    wait_for(lambda: _checkpoint_mtime(out) != first, 300, "a newer checkpoint", poll=0.1)
+    _hold(job2)  # so that it cannot finish before the cancel arrives
     subprocess.run(["scancel", job2], check=True)
     assert proc.wait(timeout=400) != 0
     (state2,) = [j["State"] for j in sacct([job2])]
-    assert state2 == "CANCELLED", log2.read_text()[-2000:]
+    assert state2.startswith("CANCELLED"), log2.read_text()[-2000:]  # sacct: "CANCELLED by <uid>"
     assert not any(p.exists() for p in outputs), "a cancelled job left outputs"
     it2 = _checkpoint_iteration(out)
     assert it2 > it1
     reason = json.loads((results / "summary.json").read_text())["captures"][0]["reason"]
     assert "cancelled" in reason, reason
 
-    # 3. The last rerun resumes from the newer checkpoint and finishes the 60 iterations.
+    # 3. The last rerun resumes from the newer checkpoint and finishes all iterations.
     log3 = tmp_path / "run3.log"
     assert snakemake(["--profile", str(normal), *config], log3).returncode == 0, log3.read_text()[-3000:]
     assert f"resuming from checkpoint: stage 0, iteration {it2}" in stage_log.read_text()
     records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines() if line]
     its = [r["iteration"] for r in records if "iteration" in r]
-    assert its == list(range(len(its))) and len(its) == 60
+    assert its == list(range(len(its))) and len(its) == ITERATIONS
     jobs3 = sacct(slurm_job_ids(log3))
     assert [j["State"] for j in jobs3] == ["COMPLETED", "COMPLETED"]  # optimize, finish
     assert json.loads((results / "summary.json").read_text())["captures"][0]["status"] == "finished"
