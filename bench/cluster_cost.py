@@ -27,9 +27,9 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 STAGES = ("linearize", "masks", "poses", "init_mesh", "uv", "optimize", "export", "report")
-BASE = {"views": 16, "width": 192}
+BASE = {"views": 16, "width": 128}
 VIEWS = (8, 16, 32)
-WIDTHS = (96, 192, 384)
+WIDTHS = (64, 128, 256)
 
 
 def say(msg: str) -> None:
@@ -51,7 +51,7 @@ def make_captures(root: Path, grid: list[dict]) -> None:
             continue
         cmd = [sys.executable, "-m", "recon", "synth", str(folder), "--object", "blob", "--views",
                str(g["views"]), "--res", str(g["width"]), "--format", "exr", "--cameras",
-               "--mesh-level", "4", "--texture-size", "256", "--seed", "0"]
+               "--mesh-level", "3", "--texture-size", "128", "--seed", "0"]
         say(" ".join(cmd[2:]))
         subprocess.run(cmd, cwd=REPO, check=True, env=_env())
 
@@ -126,9 +126,10 @@ def plot(rows: list[dict], path: Path) -> None:
     axes[0].set_ylabel("CPU seconds (Snakemake benchmark)")
     axes[0].set_title(f"{BASE['width']} px wide photos")
     axes[1].set_title(f"{BASE['views']} views")
-    axes[1].legend(fontsize=7, loc="upper left")
+    handles, labels = axes[1].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=8, loc="center right")
     fig.suptitle("Cost of a capture per stage (draft preset, 2-core machine)")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 0.86, 1))
     fig.savefig(path, dpi=110)
 
 
