@@ -51,10 +51,14 @@ N_SYNTH = 10
 BROKEN = "syn04"  # one photo of this capture is not an image: its linearize fails
 ITERATIONS = 100  # optimize of the killed capture (checkpoint every 5)
 STAGES_BEFORE_OPTIMIZE = ("linear", "masks", "poses", "init_mesh", "uv")
-# Keys of the stages' JSON files that differ between any two runs: timings, and the diagnostics
-# of COLMAP's mapping trials (multithreaded: a trial registered 25 of 32 views in one run and
-# 26 in another, while the cameras the stage chose agreed to 15 digits).
-_TIMING_KEY = re.compile(r"(^|_)(s|seconds|time|timings|elapsed)$|_s$|^trials$")
+# Keys of the stages' JSON files that differ between any two runs: timings, and the similarity
+# from COLMAP's model frame to the object frame (COLMAP's multithreaded mapping fixes its own
+# frame differently each run: 5e-6 apart between two runs of the demo, while the cameras in the
+# object frame, the stage's contract, agreed to 5e-14).
+_TIMING_KEY = re.compile(r"(^|_)(s|seconds|time|timings|elapsed)$|_s$|^colmap_to_object$")
+# COLMAP's own files and the poses stage's diagnostics in COLMAP's frame (its mapping trials:
+# one registered 25 of 32 views in one run and 26 in another; the frame box in COLMAP units).
+_RUN_DEPENDENT = ("poses/sparse/", "poses/work/", "poses/poses.json", "poses/frame.json")
 
 
 @pytest.fixture(scope="module")
@@ -189,11 +193,11 @@ def _compare_with_local(slurm: Path, local: Path):
         if rel.split("/")[0] not in STAGES_BEFORE_OPTIMIZE:
             continue
         a, b = local / rel, slurm / rel
+        if rel.startswith(_RUN_DEPENDENT):
+            continue
         if rel.endswith(".json"):
             _assert_close(_comparable(json.loads(a.read_text()), slurm.name),
                           _comparable(json.loads(b.read_text()), slurm.name), rel)
-        elif rel.startswith(("poses/sparse/", "poses/work/")):
-            continue  # COLMAP's own model and database: dates, and floats summed in another order
         else:
             assert a.read_bytes() == b.read_bytes(), f"{rel} differs between the local and the SLURM run"
     ma = json.loads((local / "report" / "metrics.json").read_text())
