@@ -37,3 +37,14 @@ include: "workflow/rules/uv.smk"
 include: "workflow/rules/optimize.smk"
 include: "workflow/rules/export.smk"
 include: "workflow/rules/report.smk"
+
+
+# One readable file per run, <results>/summary.md (+ summary.json): which captures finished,
+# which failed, at which stage and why (recon.summary; with --keep-going, the profiles' default on
+# a cluster, after every capture that could go on has finished).
+onsuccess:
+    write_run_summary(RESULTS, CAPTURES, "success")
+
+
+onerror:
+    write_run_summary(RESULTS, CAPTURES, "error")

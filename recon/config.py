@@ -151,10 +151,40 @@ def job_settings(stage: str, job, presets_dir: str | os.PathLike | None = None) 
     ``job`` is the ``snakemake`` object Snakemake injects into a rule's script (duck-typed: its
     ``config["captures"]``, ``config["preset"]`` and ``wildcards.capture``; ``recon`` never
     imports Snakemake). The values equal the rule's tracked ``params.settings``; the sources
-    name the files in error messages.
+    name the files in error messages. One addition: a job of a :data:`GPU_STAGES` stage whose
+    resources request a GPU (:func:`job_variant`) renders with ``cuda_ad_rgb`` unless its
+    settings name a variant (not tracked: the device is where a job runs, not a setting).
     """
     capture_dir = Path(job.config["captures"]) / job.wildcards.capture
-    return stage_settings(stage, job.config["preset"], capture_dir, presets_dir)
+    settings = stage_settings(stage, job.config["preset"], capture_dir, presets_dir)
+    variant = job_variant(getattr(job, "resources", None))
+    if stage in GPU_STAGES and variant and not settings.get("variant"):
+        settings["variant"] = variant
+    return settings
+
+
+GPU_STAGES = ("optimize",)
+"""Stages that render on a GPU when their job was given one (profiles/slurm: ``gpu``/``gres``)."""
+
+
+def job_variant(resources) -> str | None:
+    """The Mitsuba variant a job's resources ask for: ``"cuda_ad_rgb"`` when they request a GPU
+    (``gpu`` > 0, or a ``gres`` naming ``gpu`` such as ``"gpu:1"`` / ``"gpu:a100:1"``), else None
+    (then :func:`recon.mi.default_variant` decides: ``RECON_VARIANT``, else the CPU).
+
+    ``resources`` is a mapping with ``get`` (Snakemake's ``snakemake.resources``) or None. A
+    variant named in the settings (``optimize: {variant: ...}``) wins over this choice.
+    """
+    if resources is None:
+        return None
+    gpu = resources.get("gpu") or 0
+    gres = str(resources.get("gres") or "")
+    try:
+        gpu = int(gpu)
+    except (TypeError, ValueError):
+        raise ConfigError(f"resource gpu={gpu!r}: expected a number of GPUs (e.g. gpu=1)") from None
+    wants_gpu = gpu > 0 or any(part.split(":")[0] == "gpu" for part in gres.split(",") if part)
+    return "cuda_ad_rgb" if wants_gpu else None
 
 
 T = typing.TypeVar("T")

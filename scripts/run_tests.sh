@@ -5,4 +5,4 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 export PATH="$PWD/.venv/bin:$PATH"
 export OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-PASSIVE}"  # see recon/__init__.py
-exec .venv/bin/python -m pytest -q -m "not slow" -p no:cacheprovider "$@"
+exec .venv/bin/python -m pytest -q -m "not slow and not slurm" -p no:cacheprovider "$@"

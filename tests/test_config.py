@@ -113,3 +113,34 @@ def test_folders_without_images_are_named_when_skipped(tmp_path, caplog):
     assert warnings[0] == f"{tmp_path / 'empty'}: no images/ folder, so it is not a capture and is skipped"
     assert warnings[1].startswith(f"{tmp_path / 'stray'}: no images/ folder")
     assert "2 photo(s) (0001.JPG, 0002.dng): move them into " + str(tmp_path / "stray" / "images") in warnings[1]
+
+
+class _Job:
+    """The parts of Snakemake's injected ``snakemake`` object that job_settings reads."""
+
+    def __init__(self, captures, resources):
+        self.config = {"captures": str(captures), "preset": "draft"}
+        self.wildcards = dataclasses.make_dataclass("W", ["capture"])("cap")
+        self.resources = resources
+
+
+@pytest.mark.parametrize("resources, variant", [
+    ({}, None), ({"gpu": 0}, None), ({"gpu": 1}, "cuda_ad_rgb"), ({"gpu": "2"}, "cuda_ad_rgb"),
+    ({"gres": "gpu:1"}, "cuda_ad_rgb"), ({"gres": "gpu:a100:2"}, "cuda_ad_rgb"),
+    ({"gres": "tmpfs:10G"}, None), ({"gres": "gpus_are_not_this:1"}, None), (None, None),
+])
+def test_job_variant_follows_the_gpu_resource(resources, variant):
+    assert rc.job_variant(resources) == variant
+
+
+def test_job_settings_render_optimize_on_the_job_gpu(tmp_path):
+    cap = tmp_path / "caps" / "cap"
+    cap.mkdir(parents=True)
+    assert rc.job_settings("optimize", _Job(tmp_path / "caps", {"gpu": 1}))["variant"] == "cuda_ad_rgb"
+    assert "variant" not in rc.job_settings("optimize", _Job(tmp_path / "caps", {}))
+    assert "variant" not in rc.job_settings("report", _Job(tmp_path / "caps", {"gpu": 1}))
+    # a variant the settings name wins
+    (cap / "capture.yaml").write_text("optimize:\n  variant: llvm_ad_rgb\n")
+    assert rc.job_settings("optimize", _Job(tmp_path / "caps", {"gpu": 1}))["variant"] == "llvm_ad_rgb"
+    with pytest.raises(rc.ConfigError, match="resource gpu='many'"):
+        rc.job_variant({"gpu": "many"})

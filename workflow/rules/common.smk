@@ -5,6 +5,7 @@ from pathlib import Path
 import recon.config as rc
 from recon.runlock import RunLockError, lock_results
 from recon.io.images import IMAGE_EXTENSIONS
+from recon.summary import write_run_summary
 
 RESULTS = config["results"]
 CAPTURES_ROOT = config["captures"]

@@ -13,5 +13,4 @@ with stage(snakemake.log[0]):  # noqa: F821 (injected by Snakemake); errors: see
         build_settings(MaskSettings, job_settings("masks", snakemake)),  # noqa: F821
         given_dir=snakemake.params.given_dir or None,  # noqa: F821
         stems=list(snakemake.params.stems),  # noqa: F821
-        cameras=snakemake.params.cameras or None,  # noqa: F821
     )
