@@ -21,6 +21,13 @@ moved together with all cameras leaves every image unchanged, so the pose correc
 :meth:`CameraRefinement.fix_gauge` projects the pose corrections onto the orthogonal
 complement of that null space (computed at the given cameras, to first order): the mean camera
 motion and the cameras' overall scale stay those of the input, and so does the object frame.
+Views aligned to a fixed scene (the held-out views after the optimization,
+:func:`recon.optimize.loop.align_heldout`) have no gauge: ``gauge=False``.
+
+Observability (``docs/camera_refine.md``): at ordinary fields of view a focal length error and
+the object scaled by the same factor give nearly the same images (perspective is the only cue),
+as do a small rotation and a sideways shift of one camera (parallax is the only cue); the
+refinement removes what the images see (the reprojection error) and its prior holds the rest.
 """
 
 from __future__ import annotations
@@ -61,6 +68,13 @@ class CameraPrior:
                 raise ValueError(f"camera prior {k} must be a positive number, got {v!r}")
 
 
+def scene_extent(cameras: Sequence[Camera]) -> float:
+    """The scene size the translation units refer to: the mean distance of the camera centres
+    from their centroid (1 when they coincide)."""
+    centers = np.stack([c.center for c in cameras])
+    return float(np.mean(np.linalg.norm(centers - centers.mean(0), axis=1))) or 1.0
+
+
 def _skew(w: torch.Tensor) -> torch.Tensor:
     """(..., 3) -> (..., 3, 3) cross-product matrices."""
     z = torch.zeros_like(w[..., 0])
@@ -94,11 +108,15 @@ def rotation_log(R: np.ndarray) -> np.ndarray:
 class CameraRefinement(torch.nn.Module):
     """Corrections for ``cameras`` (the training views, in order); see the module docstring."""
 
-    def __init__(self, cameras: Sequence[Camera], prior: CameraPrior = CameraPrior(), intrinsics: bool = True):
+    def __init__(self, cameras: Sequence[Camera], prior: CameraPrior = CameraPrior(), intrinsics: bool = True,
+                 gauge: bool = True, scene_size: float | None = None):
         super().__init__()
         self.base = list(cameras)
-        if len(self.base) < 3:
+        self.gauge = bool(gauge)
+        if self.gauge and len(self.base) < 3:
             raise ValueError(f"camera refinement needs at least 3 views, got {len(self.base)}")
+        if not self.base:
+            raise ValueError("camera refinement needs at least one view")
         n = len(self.base)
         self.prior = prior
         self.refine_intrinsics = bool(intrinsics)
@@ -106,11 +124,15 @@ class CameraRefinement(torch.nn.Module):
         self.translation = torch.nn.Parameter(torch.zeros(n, 3, dtype=torch.float64))
         self.log_focal = torch.nn.Parameter(torch.zeros(1, dtype=torch.float64), requires_grad=self.refine_intrinsics)
         self.principal = torch.nn.Parameter(torch.zeros(2, dtype=torch.float64), requires_grad=self.refine_intrinsics)
-        centers = np.stack([c.center for c in self.base])
-        self.scene_size = float(np.mean(np.linalg.norm(centers - centers.mean(0), axis=1))) or 1.0
+        if scene_size is not None:
+            if not (np.isfinite(scene_size) and scene_size > 0):
+                raise ValueError(f"scene_size must be a positive number, got {scene_size!r}")
+            self.scene_size = float(scene_size)
+        else:
+            self.scene_size = scene_extent(self.base)
         self._R0 = torch.tensor(np.stack([c.world_to_camera[:3, :3] for c in self.base]), dtype=torch.float64)
         self._t0 = torch.tensor(np.stack([c.world_to_camera[:3, 3] for c in self.base]), dtype=torch.float64)
-        self._gauge = torch.tensor(self._gauge_basis(), dtype=torch.float64)
+        self._gauge = torch.tensor(self._gauge_basis(), dtype=torch.float64) if self.gauge else None
 
     # ---- parameters -> cameras ----
     def param_groups(self) -> list[dict]:
@@ -153,13 +175,33 @@ class CameraRefinement(torch.nn.Module):
         K, w2c = self.matrices(idx, cameras)
         return camera_table_torch(K, w2c).to(torch.float32)
 
+    def with_intrinsics(self, cameras: Sequence[Camera]) -> list[Camera]:
+        """``cameras`` (any views, any image size) with the refined shared intrinsics, poses
+        unchanged: e.g. views held out of the refinement."""
+        f = float(torch.exp(self.log_focal.detach())[0])
+        px, py = (float(x) for x in self.principal.detach())
+        out = []
+        for c in cameras:
+            K = np.array(c.K, dtype=np.float64)
+            K[0, :2] *= f
+            K[1, 1] *= f
+            K[0, 2] += px * c.width
+            K[1, 2] += py * c.height
+            out.append(Camera(c.image, c.width, c.height, K, np.array(c.world_to_camera, dtype=np.float64)))
+        return out
+
     # ---- prior and gauge ----
-    def prior_loss(self) -> torch.Tensor:
+    def prior_loss(self, idx: Sequence[int] | None = None) -> torch.Tensor:
         """Mean squared corrections over their prior standard deviations (a Gaussian's -log,
-        up to 1/2 and a constant), per view for the poses."""
+        up to 1/2 and a constant), per view for the poses: over the views ``idx`` (None = all),
+        so that a view outside a batch is not pulled back by the prior alone."""
         p = self.prior
-        loss = ((self.rotation / np.deg2rad(p.sigma_rotation_deg)) ** 2).sum(-1).mean()
-        loss = loss + ((self.translation / (p.sigma_translation * self.scene_size)) ** 2).sum(-1).mean()
+        rot, tra = self.rotation, self.translation
+        if idx is not None:
+            idx_t = torch.as_tensor(np.asarray(idx, dtype=np.int64))
+            rot, tra = rot[idx_t], tra[idx_t]
+        loss = ((rot / np.deg2rad(p.sigma_rotation_deg)) ** 2).sum(-1).mean()
+        loss = loss + ((tra / (p.sigma_translation * self.scene_size)) ** 2).sum(-1).mean()
         if self.refine_intrinsics:
             loss = loss + (self.log_focal[0] / p.sigma_focal) ** 2 + ((self.principal / p.sigma_principal) ** 2).sum()
         return loss
@@ -202,7 +244,10 @@ class CameraRefinement(torch.nn.Module):
 
     @torch.no_grad()
     def fix_gauge(self) -> None:
-        """Project the pose corrections onto the complement of the similarity gauge."""
+        """Project the pose corrections onto the complement of the similarity gauge (nothing
+        to do without a gauge: views aligned to a fixed scene)."""
+        if self._gauge is None:
+            return
         x = torch.cat([self.rotation, self.translation], 1).reshape(-1)
         x = x - self._gauge @ (self._gauge.T @ x)
         x = x.reshape(-1, POSE_DIM)
@@ -211,28 +256,45 @@ class CameraRefinement(torch.nn.Module):
 
     # ---- reporting ----
     @torch.no_grad()
-    def corrections(self) -> dict:
-        """Per view rotation (degrees) and centre shift (fraction of the scene size); the
-        intrinsics scale and shift."""
-        K, w2c = self.matrices(range(len(self.base)), self.base)
+    def corrections(self, object_size: float | None = None, cameras: Sequence[Camera] | None = None) -> dict:
+        """Per view rotation (degrees) and centre shift (fraction of the scene size, and of
+        ``object_size`` when given: ``center_shift_object``); the intrinsics scale and shift,
+        and the first view's intrinsics before and after in the pixels of ``cameras`` (the
+        same views at another image size, e.g. the photos'; default: the base cameras')."""
+        _, w2c = self.matrices(range(len(self.base)), self.base)
+        ref = list(cameras) if cameras is not None else self.base
+        if len(ref) != len(self.base):
+            raise ValueError(f"corrections: {len(ref)} cameras for {len(self.base)} views")
+        K_ref, _ = self.matrices(range(len(ref)), ref)
         views = {}
         for i, c in enumerate(self.base):
             R, t = w2c[i, :3, :3].numpy(), w2c[i, :3, 3].numpy()
             center = -R.T @ t
+            shift = float(np.linalg.norm(center - c.center))
             views[c.stem] = {
                 "rotation_deg": float(np.rad2deg(np.linalg.norm(self.rotation[i].numpy()))),
-                "center_shift": float(np.linalg.norm(center - c.center) / self.scene_size),
+                "center_shift": shift / self.scene_size,
             }
+            if object_size:
+                views[c.stem]["center_shift_object"] = shift / float(object_size)
         rot = [v["rotation_deg"] for v in views.values()]
         shift = [v["center_shift"] for v in views.values()]
+        extra = {}
+        if object_size:
+            so = [v["center_shift_object"] for v in views.values()]
+            extra = {"mean_center_shift_object": float(np.mean(so)), "max_center_shift_object": float(np.max(so)),
+                     "object_size": float(object_size)}
         return {
             "views": views,
             "mean_rotation_deg": float(np.mean(rot)), "max_rotation_deg": float(np.max(rot)),
             "mean_center_shift": float(np.mean(shift)), "max_center_shift": float(np.max(shift)),
+            "scene_size": self.scene_size, **extra,
             "focal_scale": float(torch.exp(self.log_focal)[0]),
             "principal_shift": [float(x) for x in self.principal],
-            "intrinsics_before": {"fx": float(self.base[0].K[0, 0]), "fy": float(self.base[0].K[1, 1]),
-                                  "cx": float(self.base[0].K[0, 2]), "cy": float(self.base[0].K[1, 2])},
-            "intrinsics_after": {"fx": float(K[0, 0, 0]), "fy": float(K[0, 1, 1]),
-                                 "cx": float(K[0, 0, 2]), "cy": float(K[0, 1, 2])},
+            "intrinsics_before": {"fx": float(ref[0].K[0, 0]), "fy": float(ref[0].K[1, 1]),
+                                  "cx": float(ref[0].K[0, 2]), "cy": float(ref[0].K[1, 2]),
+                                  "width": int(ref[0].width), "height": int(ref[0].height)},
+            "intrinsics_after": {"fx": float(K_ref[0, 0, 0]), "fy": float(K_ref[0, 1, 1]),
+                                 "cx": float(K_ref[0, 0, 2]), "cy": float(K_ref[0, 1, 2]),
+                                 "width": int(ref[0].width), "height": int(ref[0].height)},
         }

@@ -574,9 +574,12 @@ def capture_is_ldr(images) -> bool | None:
 
 
 def run_imaging_selection(settings, mesh, maps: dict, material: MaterialModel, covered: np.ndarray, views, heldout,
-                          light: float, tone_scale: float, images) -> tuple[dict, MaterialModel, dict]:
+                          light: float, tone_scale: float, images, train_set=None,
+                          heldout_set=None) -> tuple[dict, MaterialModel, dict]:
     """The optimize stage's imaging selection (``select_imaging``): the maps refitted under the
-    chosen imaging terms, the material model, and the evidence for summary.json."""
+    chosen imaging terms, the material model, and the evidence for summary.json.
+    ``train_set``/``heldout_set``: the views at ``select_image_size`` with the cameras the model
+    goes with (refined by the optimizer, issue 17); default ``views.at(size)``/``heldout.at(size)``."""
     terms = tuple(settings.imaging_terms)
     ldr = capture_is_ldr(images)
     tone = settings.tone_curve == "fit" or (settings.tone_curve == "auto" and bool(ldr))
@@ -584,7 +587,9 @@ def run_imaging_selection(settings, mesh, maps: dict, material: MaterialModel, c
         terms = tuple(t for t in terms if t != "tone")
     size = int(settings.select_image_size)
     log.info("imaging model selection on %d held-out views: %s", len(heldout), ", ".join(terms))
-    fit, ev = select_imaging(mesh, Fit(material, maps, float("nan")), covered, views.at(size), heldout.at(size),
+    train_set = train_set if train_set is not None else views.at(size)
+    heldout_set = heldout_set if heldout_set is not None else heldout.at(size)
+    fit, ev = select_imaging(mesh, Fit(material, maps, float("nan")), covered, train_set, heldout_set,
                              light, tone_scale, settings.selection_settings(), candidates=terms,
                              offset_given=settings.flash_offset, spp=int(settings.select_spp),
                              seed=int(settings.seed) + 17)

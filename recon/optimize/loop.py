@@ -10,12 +10,26 @@ Timings are kept per phase, as in the paper's supplement: ``render`` (forward re
 ``loss`` (rendering loss and priors), ``backward`` (backpropagation through both),
 ``step`` (optimizer), ``geometry`` (large-steps solves, waiting for and acting on the surface
 guard, remeshing, unwrapping and baking), ``setup`` (building renderers and targets for a
-stage, writing checkpoints). The guard's self-intersection test runs in a worker thread while
-the next iteration renders; its CPU time is reported apart (``guard_check_seconds``).
+stage, writing checkpoints), ``material`` (material selection, plateau tests), ``cameras``
+(aligning the held-out views' poses to the fitted model). The guard's self-intersection test
+runs in a worker thread while the next iteration renders; its CPU time is reported apart
+(``guard_check_seconds``).
+
+Cameras refined by the renderer (issue 17, :mod:`recon.optimize.camera_refine`): with
+``refine_cameras`` on (cameras from SfM) every training view's pose and the shared intrinsics
+are parameters of the same objective (their prior is its ``camera`` term), stepped by their own
+Adam after the surface's, the similarity gauge projected out after each step. With "select"
+the run is made twice, without (the control) and with the refinement, from the same start and
+seeds; each run's held-out poses are then aligned to its fixed final model for the same number
+of steps (their SfM errors would otherwise blur both), and the refined run is kept only when
+its held-out error is lower by more than the noise (:func:`recon.optimize.material.compare`).
+``optimize/cameras.json`` holds the cameras the final model goes with: the refined training
+views, the aligned held-out views, the input cameras otherwise.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -29,11 +43,12 @@ import numpy as np
 import torch
 
 from recon.io.atomic import atomic_path
-from recon.io.cameras import load_cameras
+from recon.io.cameras import Camera, CameraSet, load_cameras, save_cameras
 from recon.io.images import write_exr
 from recon.io.mesh import Mesh, read_mesh, write_obj
 from recon.optimize import checkpoint as ckpt
 from recon.optimize import objective
+from recon.optimize.camera_refine import CameraRefinement, scene_extent
 from recon.optimize import regularizers as reg
 from recon.optimize.guard import SurfaceGuard, self_intersecting_faces
 from recon.optimize.largesteps import AdamUniform, LargeSteps
@@ -48,8 +63,9 @@ from recon.support import PlaneError, SupportPlane, plane_if_found
 
 log = logging.getLogger(__name__)
 
-PHASES = ("render", "loss", "backward", "step", "geometry", "setup", "material")
+PHASES = ("render", "loss", "backward", "step", "geometry", "setup", "material", "cameras")
 MAP_NAMES = ("diffuse", "specular", "roughness")
+CAMERAS_FILE = "cameras.json"
 
 
 class OptimizeError(ValueError):
@@ -97,6 +113,7 @@ class _Run:
     light: float
     ckpt_dir: Path
     fingerprint: str
+    cameras: "_CameraFit | None" = None  # the camera refinement (None: the cameras are fixed)
     plane: SupportPlane | None = None  # the table the object stands on: no vertex goes below it
 
     def lr_geometry(self, factor: float = 1.0) -> float:
@@ -105,6 +122,32 @@ class _Run:
 
     def lr_texture(self, factor: float = 1.0) -> float:
         return self.settings.lr_texture * factor
+
+
+class _CameraFit:
+    """A run's camera refinement: the training views' corrections and their optimizer, which
+    live across the coarse-to-fine stages (the views are the same in every stage)."""
+
+    def __init__(self, views: Views, settings: OptimizeSettings):
+        self.ref = CameraRefinement(views.cameras, settings.camera_prior(), intrinsics=settings.camera_intrinsics)
+        self.opt = torch.optim.Adam(self.ref.param_groups(), betas=settings.betas)
+        for g in self.opt.param_groups:
+            g["base_lr"] = g["lr"]
+
+    def step(self, factor: float) -> None:
+        """Adam step at the base rates times ``factor`` (the stage's schedule), then the gauge."""
+        for g in self.opt.param_groups:
+            g["lr"] = g["base_lr"] * factor
+        self.opt.step()
+        self.ref.fix_gauge()
+
+    def state(self) -> dict:
+        return {"params": {k: v.detach().clone() for k, v in self.ref.state_dict().items()},
+                "optimizer": self.opt.state_dict()}
+
+    def load(self, state: dict) -> None:
+        self.ref.load_state_dict(state["params"])
+        self.opt.load_state_dict(state["optimizer"])
 
 
 @dataclass
@@ -239,8 +282,14 @@ def _forward_backward(st: _Stage, it: int, idx: np.ndarray, run: _Run, times: di
     t1 = time.perf_counter()
     vals = _map_values(settings, st.maps)
     cams = [st.targets.cameras[i] for i in idx]
+    table = None
+    ref = run.cameras.ref if run.cameras is not None else None
+    if ref is not None:  # the corrected cameras, differentiable through the table
+        table = ref.table(idx, cams)
+        cams = ref.cameras(idx, cams)
     img = st.renderer.render_torch(v.to(torch.float32), vals["diffuse"], vals["specular"], vals["roughness"],
-                                   cams, run.light, seed=ckpt.render_seed(settings.seed, st.index, it))
+                                   cams, run.light, seed=ckpt.render_seed(settings.seed, st.index, it),
+                                   camera_table=table)
     t2 = time.perf_counter()
     terms = {"render": objective.render_loss(img, st.targets.images[idx], st.targets.weights[idx], settings.tone_map,
                                              run.tone_scale),
@@ -248,10 +297,13 @@ def _forward_backward(st: _Stage, it: int, idx: np.ndarray, run: _Run, times: di
     terms.update(objective.material_terms(
         vals["specular"], vals["diffuse"], vals["roughness"], torch.from_numpy(st.covered), weights,
         settings.bilateral_sigma_space, settings.bilateral_sigma_color, settings.bilateral_radius))
+    terms.update(objective.camera_terms(ref, idx, weights))
     total = objective.total(terms, weights)
     t3 = time.perf_counter()
     st.opt_geom.zero_grad(set_to_none=True)
     st.opt_tex.zero_grad(set_to_none=True)
+    if run.cameras is not None:
+        run.cameras.opt.zero_grad(set_to_none=True)
     total.backward()
     t4 = time.perf_counter()
     for phase, dt in (("geometry", t1 - t0), ("render", t2 - t1), ("loss", t3 - t2), ("backward", t4 - t3)):
@@ -315,6 +367,8 @@ def _iteration(st: _Stage, it: int, run: _Run, timer: _Timer) -> dict:
         g["lr"] = run.lr_texture(f)
     st.opt_geom.step()
     st.opt_tex.step()
+    if run.cameras is not None:
+        run.cameras.step(f)
     p = _params(settings)
     for k in MAP_NAMES:
         st.maps[k].project_(p[k])
@@ -379,6 +433,7 @@ def optimize_capture(
     settings: OptimizeSettings | None = None,
     progress: bool = True,
     callback: Callable[[dict], None] | None = None,
+    cameras_source: str | None = None,
     plane_json: str | os.PathLike | None = None,
 ) -> dict:
     """Optimize shape and SVBRDF maps from flash photos; write the optimize stage's outputs.
@@ -392,10 +447,13 @@ def optimize_capture(
     cameras_json : ``poses/cameras.json``.
     init_mesh_obj : ``uv/mesh.obj`` (positions are used; the stage makes its own atlas).
     out_dir : ``results/<capture>/optimize``; gets ``mesh.obj``, ``diffuse.exr``, ``specular.exr``,
-        ``roughness.exr``, ``log.jsonl``, ``summary.json`` and ``checkpoints/``.
+        ``roughness.exr``, ``log.jsonl``, ``summary.json``, ``cameras.json`` (the cameras of the
+        final model, in the frame of ``cameras_json``) and ``checkpoints/``.
     settings : OptimizeSettings (None = the defaults)
     progress : show a tqdm bar (loss and ETA).
     callback : called after every iteration with its log record (dict).
+    cameras_source : where the cameras came from, "sfm" or "given" (None: the ``source`` of
+        ``poses.json`` beside ``cameras_json``, else "given"); decides ``refine_cameras``.
     plane_json : the support plane (``plane.json`` beside the masks; absent when none was found):
         no vertex goes below it (:func:`_keep_above_plane`).
 
@@ -411,9 +469,17 @@ def optimize_capture(
     out_dir = Path(out_dir)
     ckpt_dir = out_dir / "checkpoints"
     cams = load_cameras(cameras_json)
+    source = cameras_source if cameras_source is not None else cameras_source_of(cameras_json)
+    mode, why = settings.camera_mode(source)
     stages = settings.effective_stages()
     views = Views(images, masks, saturation_masks, cams, max(settings.stage_image_size(s) for s in stages))
-    views, heldout, holdout_info = split_holdout(views, settings)
+    views, heldout, holdout_info = split_holdout(views, settings, force=mode == "select")
+    if mode != "off" and len(views) < 3:
+        mode, why = "off", f"only {len(views)} training views (camera refinement needs at least 3)"
+    if mode == "select" and heldout is None:
+        mode, why = "off", "no held-out views to decide on (refine_cameras: select needs at least 6 views)"
+    if mode != "off" or settings.refine_cameras != "off":
+        log.info("camera refinement: %s (%s)", mode, why)
     init = read_mesh(init_mesh_obj)
     lo, hi = init.bbox()
     bbox_scale = float(np.max(hi - lo))
@@ -435,35 +501,60 @@ def optimize_capture(
     tone_scale = views.median_foreground
     light = views.light_intensity
 
-    state = ckpt.load(ckpt_dir, fp)
+    base = _Run(settings, tuple(stages), views, heldout, bbox_scale, weights, tone_scale, light, ckpt_dir, fp,
+                plane=plane)
+    runs = []
+    if mode in ("off", "select"):
+        runs.append(base)
+    if mode in ("on", "select"):
+        # its own checkpoints beside the control's, so either run resumes alone
+        runs.append(dataclasses.replace(base, ckpt_dir=ckpt_dir / "cameras" if mode == "select" else ckpt_dir,
+                                        fingerprint=fp + "+cameras", cameras=_CameraFit(views, settings)))
+    done = [_execute(run, init, progress, callback) for run in runs]
+
+    # ---- the cameras: held-out poses aligned, the refinement selected ----
+    cam_timer = _Timer()
+    aligned = {}
+    if mode != "off" and heldout is not None:
+        for run, (st, _) in zip(runs, done, strict=True):
+            t0 = time.perf_counter()
+            aligned[id(run)] = align_heldout(run, st)
+            cam_timer.add("cameras", time.perf_counter() - t0)
+    camera_info = {"requested": settings.refine_cameras, "mode": mode, "reason": why, "source": source,
+                   "refined": False}
+    chosen = len(runs) - 1  # "on": the refined run; "off": the only one
+    if mode == "select":
+        ctrl, cand = (aligned[id(r)] for r in runs)
+        cmp = compare(cand["tiles"], ctrl["tiles"], settings.selection_settings())
+        chosen = 1 if cmp["accepted"] else 0
+        camera_info["selection"] = {
+            "criterion": f"keep the refined cameras when the held-out error (each run's held-out poses aligned "
+                         f"to its fixed model for {int(settings.camera_align_iterations)} steps) is lower than the "
+                         f"control's (same run without refinement) by > {settings.select_z} x SE of the paired "
+                         f"per-tile difference and by > {100 * settings.select_min_gain:.3g} %",
+            "control_heldout_error": float(np.nanmean(ctrl["tiles"])),
+            "refined_heldout_error": float(np.nanmean(cand["tiles"])),
+            **cmp,
+            "run_seconds": [float(sum(p.timer.total.values())) for _, p in done],
+        }
+        log.info("camera refinement: held-out %.5f (control %.5f, gain %+.5f, SE %.5f): %s",
+                 camera_info["selection"]["refined_heldout_error"], camera_info["selection"]["control_heldout_error"],
+                 cmp["gain"], cmp["se"], "kept" if cmp["accepted"] else "rejected")
+    run, (st, prog) = runs[chosen], done[chosen]
+    if any(r.cameras is not None for r in runs):
+        fit = next(r.cameras for r in runs if r.cameras is not None)
+        camera_info["refined"] = run.cameras is not None
+        camera_info["corrections"] = fit.ref.corrections(object_size=bbox_scale,
+                                                         cameras=[cams.by_stem()[s] for s in views.stems])
+        camera_info["intrinsics_refined"] = bool(settings.camera_intrinsics)
+    held_cams = aligned.get(id(run))
+    if held_cams is not None:
+        camera_info["heldout_alignment"] = held_cams["corrections"]
     timer = _Timer()
-    records: list[dict] = []
-    stage_infos: list[dict] = []
-    start_stage, start_it = 0, 0
-    if state is not None:
-        start_stage, start_it = int(state["stage"]), int(state["iteration"])
-        records = list(state["records"])
-        stage_infos = list(state["stage_infos"])
-        timer.total.update(state["timings"])
-        log.info("resuming from checkpoint: stage %d, iteration %d", start_stage, start_it)
-
-    total_iters = sum(int(s.iterations) for s in stages)
-    done_iters = sum(int(s.iterations) for s in stages[:start_stage]) + start_it
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=total_iters, initial=done_iters, desc="optimize", unit="it", dynamic_ncols=True)
-
-    run = _Run(settings, tuple(stages), views, heldout, bbox_scale, weights, tone_scale, light, ckpt_dir, fp, plane)
-    prog = _Progress(timer, records, stage_infos, bar=bar, callback=callback,
-                     executor=ThreadPoolExecutor(max_workers=1, thread_name_prefix="surface-guard"))
-    try:
-        st = _run_stages(run, prog, init, state, start_stage, start_it)
-    finally:
-        prog.executor.shutdown(wait=True)
-    if bar is not None:
-        bar.close()
+    for t in [p.timer for _, p in done] + [cam_timer]:
+        for k, v in t.total.items():
+            timer.add(k, v)
+    records, stage_infos = prog.records, prog.stage_infos
 
     # ---- outputs ----
     with torch.no_grad():
@@ -471,12 +562,20 @@ def optimize_capture(
     final = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
     model = model_from_settings(settings.specular_channels)
     selection = None
+    train_vs = held_vs = None  # the views at the selections' size with the final model's cameras
+    if heldout is not None and (settings.select_material or settings.select_imaging):
+        size = int(settings.select_image_size)
+        train_vs, held_vs = views.at(size), heldout.at(size)
+        if run.cameras is not None:
+            train_vs = dataclasses.replace(
+                train_vs, cameras=tuple(run.cameras.ref.cameras(range(len(train_vs)), train_vs.cameras)))
+        if held_cams is not None:
+            held_vs = held_cams["viewset"]
     if settings.select_material and heldout is not None:
         t0 = time.perf_counter()
-        size = int(settings.select_image_size)
         log.info("material model selection on %d held-out views", len(heldout))
         fit, selection = select_material(
-            final, final_maps, st.covered, views.at(size), heldout.at(size), light, tone_scale,
+            final, final_maps, st.covered, train_vs, held_vs, light, tone_scale,
             settings.selection_settings(), spp=int(settings.select_spp), seed=int(settings.seed),
             progress=lambda m, f: log.info("material: fitted %s: held-out error %.5f", m.label(), f.heldout))
         final_maps, model = fit.maps, fit.model
@@ -486,7 +585,8 @@ def optimize_capture(
     if settings.select_imaging and heldout is not None:
         t0 = time.perf_counter()
         final_maps, model, imaging = run_imaging_selection(
-            settings, final, final_maps, model, st.covered, views, heldout, light, tone_scale, images)
+            settings, final, final_maps, model, st.covered, views, heldout, light, tone_scale, images,
+            train_set=train_vs, heldout_set=held_vs)
         log.info("imaging model: %s (%.1f s)", ", ".join(imaging["chosen"]) or "ideal", time.perf_counter() - t0)
     topo = topology_report(final.v_pos, final.t_pos_idx)
     n_si = int(self_intersecting_faces(final.v_pos, final.t_pos_idx).sum())
@@ -498,6 +598,7 @@ def optimize_capture(
     summary["imaging_selection"] = imaging
     summary["imaging_model"] = imaging["chosen"] if imaging else []
     summary["holdout"] = holdout_info
+    summary["camera_refinement"] = camera_info
     _save(run, prog, st, int(stages[-1].iterations), done=True)
     out_dir.mkdir(parents=True, exist_ok=True)
     for k in MAP_NAMES:
@@ -506,10 +607,138 @@ def optimize_capture(
         tmp.write_text("".join(json.dumps(r) + "\n" for r in records))
     with atomic_path(out_dir / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1))
+    save_cameras(out_dir / CAMERAS_FILE, output_cameras(cams, run, held_cams, camera_info))
     write_obj(out_dir / "mesh.obj", final)
     log.info("optimize: done in %.1f s (geometry processing %.1f%% of the iteration time)", wall,
              100 * summary["phase_fraction"]["geometry"])
     return summary
+
+
+def _execute(run: _Run, init: Mesh, progress: bool, callback) -> tuple[_Stage, _Progress]:
+    """One run of the coarse-to-fine loop, resumed from its checkpoint when that matches."""
+    stages = run.stages
+    state = ckpt.load(run.ckpt_dir, run.fingerprint)
+    timer = _Timer()
+    records: list[dict] = []
+    stage_infos: list[dict] = []
+    start_stage, start_it = 0, 0
+    if state is not None:
+        start_stage, start_it = int(state["stage"]), int(state["iteration"])
+        records = list(state["records"])
+        stage_infos = list(state["stage_infos"])
+        timer.total.update(state["timings"])
+        if run.cameras is not None:
+            run.cameras.load(state["cameras"])
+        log.info("resuming from checkpoint: stage %d, iteration %d", start_stage, start_it)
+    elif run.cameras is not None:
+        log.info("optimizing with the cameras refined")
+
+    total_iters = sum(int(s.iterations) for s in stages)
+    done_iters = sum(int(s.iterations) for s in stages[:start_stage]) + start_it
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=total_iters, initial=done_iters, unit="it", dynamic_ncols=True,
+                   desc="optimize (cameras refined)" if run.cameras is not None else "optimize")
+    prog = _Progress(timer, records, stage_infos, bar=bar, callback=callback,
+                     executor=ThreadPoolExecutor(max_workers=1, thread_name_prefix="surface-guard"))
+    try:
+        st = _run_stages(run, prog, init, state, start_stage, start_it)
+    finally:
+        prog.executor.shutdown(wait=True)
+    if bar is not None:
+        bar.close()
+    return st, prog
+
+
+def align_heldout(run: _Run, st: _Stage) -> dict:
+    """Align the held-out views' poses to a run's fixed final model; their held-out error.
+
+    The held-out cameras (with the run's refined intrinsics, if any) get per-view pose
+    corrections (no gauge: the model is fixed) fitted for ``camera_align_iterations`` Adam steps
+    on the rendering loss at ``select_image_size`` (rates decaying to 1/10, the camera prior
+    added), as bundle-adjusting methods evaluate novel views. Returns ``viewset`` (the held-out
+    targets with the aligned cameras), ``world_to_camera`` (stem -> aligned (4, 4) pose),
+    ``tiles`` (per-tile held-out errors, :func:`recon.optimize.material.heldout_error`) and
+    ``corrections`` (of the held-out poses).
+    """
+    settings = run.settings
+    size = int(settings.select_image_size)
+    vs = run.heldout.at(size)
+    at_size = list(vs.cameras)
+    if run.cameras is not None:
+        at_size = run.cameras.ref.with_intrinsics(at_size)
+    ali = CameraRefinement(at_size, settings.camera_prior(), intrinsics=False, gauge=False,
+                           scene_size=scene_extent(run.views.cameras))
+    idx = list(range(len(at_size)))
+    with torch.no_grad():
+        maps = _map_values(settings, st.maps)
+    mesh = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
+    n = int(settings.camera_align_iterations)
+    if n > 0:
+        renderer = _make_renderer(settings, mesh)
+        v = torch.from_numpy(mesh.v_pos).to(torch.float32)
+        opt = torch.optim.Adam(ali.param_groups(), betas=settings.betas)
+        base_lr = [g["lr"] for g in opt.param_groups]
+        w = run.weights.get("camera", 0.0)
+        for it in range(n):
+            for g, lr in zip(opt.param_groups, base_lr, strict=True):
+                g["lr"] = lr * 0.1 ** (it / max(n - 1, 1))
+            img = renderer.render_torch(v, maps["diffuse"], maps["specular"], maps["roughness"], ali.cameras(idx, at_size),
+                                        run.light, seed=ckpt.render_seed(settings.seed, 1000, it),
+                                        camera_table=ali.table(idx, at_size))
+            loss = objective.render_loss(img, vs.images, vs.weights, settings.tone_map, run.tone_scale)
+            if w:
+                loss = loss + w * ali.prior_loss()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+    aligned = dataclasses.replace(vs, cameras=tuple(ali.cameras(idx, at_size)))
+    tiles = heldout_error(mesh, {k: x.numpy().astype(np.float32) for k, x in maps.items()}, aligned, run.light,
+                          run.tone_scale, settings.selection_settings(), spp=int(settings.select_spp),
+                          seed=int(settings.seed))
+    return {"viewset": aligned, "world_to_camera": {c.stem: c.world_to_camera for c in aligned.cameras},
+            "tiles": tiles, "corrections": ali.corrections(object_size=run.bbox_scale)}
+
+
+def cameras_source_of(cameras_json: str | os.PathLike) -> str | None:
+    """The ``source`` ("sfm" or "given") the poses stage recorded in ``poses.json`` beside
+    ``cameras_json``; None when there is no such record."""
+    p = Path(cameras_json).with_name("poses.json")
+    if not p.is_file():
+        return None
+    try:
+        src = json.loads(p.read_text()).get("source")
+    except (json.JSONDecodeError, AttributeError, OSError) as e:
+        raise OptimizeError(f"{p}: unreadable ({e}); rerun the poses stage") from e
+    return src if isinstance(src, str) else None
+
+
+def output_cameras(cams: CameraSet, run: _Run, heldout: dict | None, info: dict) -> CameraSet:
+    """The cameras of the final model, full size: refined training views, aligned held-out
+    views, every other frame of ``cams`` as it was; ``optimize_cameras`` records how."""
+    given = cams.by_stem()
+    by_stem = {}
+    if run.cameras is not None:
+        ref = run.cameras.ref
+        full = [given[s] for s in run.views.stems]
+        by_stem.update({c.stem: c for c in ref.cameras(range(len(full)), full)})
+        if run.heldout is not None:
+            by_stem.update({c.stem: c for c in ref.with_intrinsics([given[s] for s in run.heldout.stems])})
+    if heldout is not None:  # aligned poses (independent of the image size)
+        for stem, w2c in heldout["world_to_camera"].items():
+            c = by_stem.get(stem, given[stem])
+            by_stem[stem] = Camera(c.image, c.width, c.height, c.K, np.array(w2c, dtype=np.float64))
+    frames = tuple(by_stem.get(c.stem, c) for c in cams.frames)
+    extra = dict(cams.extra)
+    extra["optimize_cameras"] = {
+        "refined": bool(run.cameras is not None),
+        "heldout_aligned": heldout is not None,
+        "mode": info.get("mode"),
+        "reason": info.get("reason"),
+    }
+    return CameraSet(frames, cams.light_intensity, extra)
 
 
 def _run_stages(run: _Run, prog: _Progress, init: Mesh, state: dict | None, start_stage: int,
@@ -604,14 +833,15 @@ def _plateau(run: _Run, si, mesh, maps, stage_infos) -> bool:
     return bool(info["plateau_stop"])
 
 
-def split_holdout(views: Views, settings: OptimizeSettings):
-    """(training views, held-out views or None, info dict) for ``settings.holds_out``.
+def split_holdout(views: Views, settings: OptimizeSettings, force: bool = False):
+    """(training views, held-out views or None, info dict) for ``settings.holds_out`` (or
+    ``force``: the camera refinement's selection needs them).
 
     Every ``holdout_every``-th view (starting at the middle of the first block) is held out,
     at least 2; none when fewer than 4 views would remain to optimize on.
     """
     n = len(views)
-    if not settings.holds_out:
+    if not (settings.holds_out or force):
         return views, None, None
     k = int(settings.holdout_every)
     held = list(range(k // 2, n, k))
@@ -667,6 +897,8 @@ def _save(run: _Run, prog: _Progress, st: _Stage, next_it: int, done: bool) -> N
     state = _stage_state(st, next_it)
     state.update(fingerprint=run.fingerprint, records=prog.records, stage_infos=prog.stage_infos,
                  timings=dict(prog.timer.total), done=done)
+    if run.cameras is not None:
+        state["cameras"] = run.cameras.state()
     ckpt.save(run.ckpt_dir, state)
     prog.timer.add("setup", time.perf_counter() - t0)
 

@@ -9,6 +9,7 @@ its name in :data:`TERMS`, its weight in :func:`weights`, its value in :func:`ge
     L = w_render * mean(w_pix |Phi(I(theta)) - Phi(I_target)|)          image term (eq. 6)
       + w_laplacian * L_lap(V) + w_edge * L_edge(V) + w_normal * L_n(V)  mesh priors
       + w_specular * L_bilateral(a_s; a_d) + w_roughness * TV(r)         material priors
+      + w_camera * L_camera(views in the batch)                          camera prior (when refined)
 
 ``Phi`` is the tone map applied to both sides; ``w_pix`` is 0 on clipped pixels.
 """
@@ -19,7 +20,7 @@ import torch
 
 from recon.optimize import regularizers as reg
 
-TERMS = ("render", "laplacian", "edge", "normal", "specular", "roughness")
+TERMS = ("render", "laplacian", "edge", "normal", "specular", "roughness", "camera")
 
 
 # ---- Image term ----
@@ -64,6 +65,7 @@ def weights(settings) -> dict[str, float]:
         "normal": settings.w_normal if settings.use_normal_edge else 0.0,
         "specular": settings.w_specular if settings.use_material_priors else 0.0,
         "roughness": settings.w_roughness if settings.use_material_priors else 0.0,
+        "camera": settings.w_camera,
     }
 
 
@@ -90,6 +92,14 @@ def material_terms(specular, diffuse, roughness, valid, w: dict, sigma_space: fl
     if w.get("roughness") and roughness is not None:
         terms["roughness"] = reg.roughness_tv_loss(roughness, valid)
     return terms
+
+
+def camera_terms(refinement, idx, w: dict) -> dict[str, torch.Tensor]:
+    """The camera prior (:meth:`recon.optimize.camera_refine.CameraRefinement.prior_loss` over
+    the views ``idx`` of the batch) when the cameras are refined and its weight is nonzero."""
+    if refinement is None or not w.get("camera"):
+        return {}
+    return {"camera": refinement.prior_loss(idx)}
 
 
 def total(terms: dict[str, torch.Tensor], w: dict[str, float], dtype: torch.dtype | None = torch.float64) -> torch.Tensor:

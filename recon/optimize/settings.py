@@ -13,6 +13,7 @@ import numpy as np
 
 from recon.config import ConfigError, build_settings
 from recon.optimize import objective
+from recon.optimize.camera_refine import CameraPrior
 from recon.optimize.material import SelectionSettings
 
 OPTIMIZERS = ("largesteps", "adam")
@@ -20,6 +21,7 @@ BOUNDARIES = ("edge", "none", "projective")
 LAPLACIANS = ("uniform", "cotangent")
 TONE_MAPS = ("log", "srgb", "linear")
 PARAMETERIZATIONS = ("sigmoid", "clamp")
+CAMERA_MODES = ("off", "on", "select")
 
 
 @dataclass(frozen=True)
@@ -129,6 +131,22 @@ class OptimizeSettings:
     and skip the remaining stages when it did not improve on the previous stage's by more than
     its noise (same test).
 
+    Cameras refined by the renderer (:mod:`recon.optimize.camera_refine`, issue 17):
+    ``refine_cameras`` "off", "on" (refine every training view's pose and the shared
+    intrinsics with the surface) or "select" (run the optimization without and with the
+    refinement and keep the refined one only when the held-out error drops by more than
+    ``select_z`` standard errors and ``select_min_gain``, after each run's held-out poses were
+    aligned to its fixed model for ``camera_align_iterations`` steps, the same for both).
+    Cameras the capture gave (``poses.json`` source "given", or no record of the source) are
+    exact by contract and never refined unless ``refine_given_cameras``. ``camera_intrinsics``:
+    refine the shared focal length and principal point too. Prior (Gaussian, weight
+    ``w_camera`` in the objective, per view in the batch): standard deviations
+    ``camera_sigma_rotation_deg`` (degrees), ``camera_sigma_translation`` (fraction of the
+    scene size, the mean distance of the cameras from their centroid), ``camera_sigma_focal``
+    (relative), ``camera_sigma_principal`` (fraction of the image size). Adam rates per step:
+    ``camera_lr_rotation_deg``, ``camera_lr_translation`` (fraction of the scene size),
+    ``camera_lr_focal`` (log focal), ``camera_lr_principal``; they follow the stage's
+    ``lr_scale`` and ``lr_decay`` like the other rates.
     The camera's imaging (:mod:`recon.optimize.imaging`, DESIGN section 6): ``select_imaging``
     (after the material model, on the same held-out views) tries the terms of ``imaging_terms``
     (flash_offset, exposure, ambient, falloff, tone) and keeps each only where it pays off the
@@ -187,6 +205,19 @@ class OptimizeSettings:
     select_spp: int = 4
     select_z: float = 2.0
     select_min_gain: float = 0.005
+    refine_cameras: str = "select"
+    refine_given_cameras: bool = False
+    camera_intrinsics: bool = True
+    w_camera: float = 0.001
+    camera_sigma_rotation_deg: float = 0.5
+    camera_sigma_translation: float = 0.01
+    camera_sigma_focal: float = 0.02
+    camera_sigma_principal: float = 0.01
+    camera_lr_rotation_deg: float = 0.02
+    camera_lr_translation: float = 0.0005
+    camera_lr_focal: float = 0.0005
+    camera_lr_principal: float = 0.0002
+    camera_align_iterations: int = 40
     select_imaging: bool = False
     imaging_terms: tuple = ("flash_offset", "exposure", "ambient", "falloff", "tone")
     flash_offset: tuple | None = None
@@ -254,7 +285,12 @@ class OptimizeSettings:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.select_min_gain < 0:
             raise ValueError(f"select_min_gain must be >= 0, got {self.select_min_gain}")
-        for name in ("w_laplacian", "w_edge", "w_normal", "w_specular", "w_roughness"):
+        if self.refine_cameras not in CAMERA_MODES:
+            raise ValueError(f"refine_cameras must be one of {CAMERA_MODES}, got {self.refine_cameras!r}")
+        if int(self.camera_align_iterations) < 0:
+            raise ValueError(f"camera_align_iterations must be >= 0, got {self.camera_align_iterations}")
+        self.camera_prior()  # validates the camera prior's values
+        for name in ("w_laplacian", "w_edge", "w_normal", "w_specular", "w_roughness", "w_camera"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
@@ -284,6 +320,27 @@ class OptimizeSettings:
             w_roughness=objective.weights(self)["roughness"],
             bilateral_sigma_space=self.bilateral_sigma_space, bilateral_sigma_color=self.bilateral_sigma_color,
             bilateral_radius=int(self.bilateral_radius))
+
+    def camera_prior(self) -> CameraPrior:
+        """The camera refinement's prior widths and learning rates."""
+        try:
+            return CameraPrior(
+                sigma_rotation_deg=self.camera_sigma_rotation_deg, sigma_translation=self.camera_sigma_translation,
+                sigma_focal=self.camera_sigma_focal, sigma_principal=self.camera_sigma_principal,
+                lr_rotation_deg=self.camera_lr_rotation_deg, lr_translation=self.camera_lr_translation,
+                lr_focal=self.camera_lr_focal, lr_principal=self.camera_lr_principal)
+        except ValueError as e:
+            raise ValueError(str(e).replace("camera prior ", "camera_")) from None
+
+    def camera_mode(self, source: str | None) -> tuple[str, str]:
+        """("off" | "on" | "select", why) for cameras from ``source`` ("sfm", "given" or None =
+        unknown, taken as given)."""
+        if self.refine_cameras == "off":
+            return "off", "refine_cameras: off"
+        if source != "sfm" and not self.refine_given_cameras:
+            return "off", (f"the cameras were given ({source or 'no poses.json beside cameras.json'}): exact by "
+                           "contract (refine_given_cameras: false)")
+        return self.refine_cameras, f"refine_cameras: {self.refine_cameras} (cameras from {source or 'unknown'})"
 
     def weights(self) -> dict[str, float]:
         """Loss weights after the ablation switches (:func:`recon.optimize.objective.weights`)."""

@@ -63,6 +63,7 @@ class Page:
     preset: str | None
     material_model: object = None
     material_selection: dict | None = None  # summary.json's evidence of the held-out model choice
+    camera_refinement: dict | None = None  # metrics.json's camera_refinement (issue 17)
     imaging_selection: dict | None = None  # the camera's imaging terms chosen the same way
     cards: list = field(default_factory=list)  # (label, value string)
     viewer_head: str = ""
@@ -151,6 +152,8 @@ def render_page(p: Page) -> str:
 
     if isinstance(p.material_selection, dict) and p.material_selection.get("candidates"):
         parts.append(_selection_section(p.material_selection))
+    if isinstance(p.camera_refinement, dict) and p.camera_refinement.get("mode"):
+        parts.append(_camera_section(p.camera_refinement))
     if isinstance(p.imaging_selection, dict) and p.imaging_selection.get("candidates"):
         parts.append(_imaging_section(p.imaging_selection))
 
@@ -188,6 +191,36 @@ def _selection_section(sel: dict) -> str:
             f'({sel.get("heldout_views", "?")} held-out views, {sel.get("train_views", "?")} fitted on). '
             f'{html.escape(str(sel.get("criterion", "")))}; error = {html.escape(str(sel.get("metric", "")))}.</p>'
             + _table(rows, head))
+
+
+def _camera_section(cam: dict) -> str:
+    """The camera refinement: mode and decision, intrinsics before/after, corrections per view."""
+    out = ["<h2>Cameras refined by the renderer</h2>"]
+    used = "used" if cam.get("refined") else "not used"
+    out.append(f'<p>Mode <b>{html.escape(str(cam.get("mode")))}</b> ({html.escape(str(cam.get("reason", "")))}); '
+               f"the refined cameras were <b>{used}</b>.</p>")
+    sel = cam.get("selection")
+    if isinstance(sel, dict):
+        out.append(f'<p class="note">{html.escape(str(sel.get("criterion", "")))}.</p>')
+        out.append(_table([("held-out error without refinement", sel.get("control_heldout_error")),
+                           ("held-out error with refinement", sel.get("refined_heldout_error")),
+                           ("gain", sel.get("gain")), ("SE", sel.get("se")),
+                           ("decision", "kept" if sel.get("accepted") else "rejected")], ("", "value")))
+    cor = cam.get("corrections")
+    if isinstance(cor, dict):
+        before, after = cor.get("intrinsics_before") or {}, cor.get("intrinsics_after") or {}
+        out.append("<h3>Intrinsics (shared, full-size pixels of the first view)</h3>")
+        out.append(_table([(k, before.get(k), after.get(k)) for k in ("fx", "fy", "cx", "cy")],
+                          ("", "before", "after")))
+        views = cor.get("views") if isinstance(cor.get("views"), dict) else {}
+        rows = [(stem, v.get("rotation_deg"), v.get("center_shift_object", v.get("center_shift")))
+                for stem, v in views.items() if isinstance(v, dict)]
+        out.append(f'<h3>Pose correction per view ({"applied" if cam.get("refined") else "proposed, not applied"})'
+                   "</h3>")
+        out.append('<p class="note">rotation in degrees; centre shift as a fraction of the object size '
+                   "(the initial mesh's longest bounding-box side).</p>")
+        out.append(_table(rows, ("view", "rotation (deg)", "centre shift")))
+    return "".join(out)
 
 
 def _imaging_section(sel: dict) -> str:

@@ -181,7 +181,8 @@ def make_report(
     optimize_dir : the optimize stage's folder: ``mesh.obj``, ``diffuse.exr``, ``specular.exr``,
         ``roughness.exr``, ``log.jsonl`` (required), ``summary.json`` (optional).
     glb : the export stage's ``asset.glb``.
-    cameras : ``poses/cameras.json`` (the cameras the model was fitted with).
+    cameras : ``optimize/cameras.json`` (the cameras the model was fitted with: SfM's refined
+        by the optimizer where it kept the refinement), or ``poses/cameras.json``.
     image_dirs : folders searched in order for each view's linear ``<stem>.exr`` (e.g.
         ``poses/undistorted`` then ``linear``).
     mask_dirs : folders searched in order for each view's ``<stem>.png`` mask.
@@ -246,6 +247,9 @@ def make_report(
     if selection is not None:
         metrics["material_selection"] = {k: selection.get(k) for k in (
             "chosen", "criterion", "metric", "heldout_views", "train_views", "candidates", "seconds")}
+    cameras_info = camera_refinement(summary)
+    if cameras_info is not None:
+        metrics["camera_refinement"] = cameras_info
     imaging = summary.get("imaging_selection") if isinstance(summary.get("imaging_selection"), dict) else None
     if imaging is not None:  # the camera's imaging terms kept, with each step's gain and SE
         metrics["imaging_model"] = imaging.get("chosen")
@@ -268,7 +272,7 @@ def make_report(
     metrics["settings"] = dataclasses.asdict(settings)
 
     page = page_html.Page(capture=capture, preset=preset, material_model=material, material_selection=selection,
-                          imaging_selection=imaging)
+                          camera_refinement=cameras_info, imaging_selection=imaging)
     if metrics["asset"].get("scale_warning"):
         page.notes.append(f"Asset scale: {metrics['asset']['scale_source']}.")
         log.warning("the asset's scale is unknown: %s", metrics["asset"]["scale_source"])
@@ -357,6 +361,36 @@ def make_report(
         (tmp / "index.html").write_text(page_html.render_page(page), encoding="utf-8")
     log.info("report written to %s in %.1f s", out_dir, time.perf_counter() - t0)
     return metrics
+
+
+def camera_refinement(summary: dict) -> dict | None:
+    """metrics.json's ``camera_refinement`` from summary.json's (issue 17): the mode and why,
+    whether the refined cameras were used, the held-out decision, the intrinsics before and
+    after and the correction per view (degrees, centre shift relative to the object size);
+    None when the summary has none."""
+    cam = summary.get("camera_refinement")
+    if not isinstance(cam, dict):
+        return None
+    out = {k: cam.get(k) for k in ("requested", "mode", "reason", "source", "refined") if k in cam}
+    if isinstance(cam.get("selection"), dict):
+        out["selection"] = cam["selection"]
+    cor = cam.get("corrections")
+    if isinstance(cor, dict):
+        views = cor.get("views") if isinstance(cor.get("views"), dict) else {}
+        out["corrections"] = {
+            "views": {s: {"rotation_deg": v.get("rotation_deg"), "center_shift": v.get("center_shift_object"),
+                          "center_shift_scene": v.get("center_shift")} for s, v in views.items() if isinstance(v, dict)},
+            "center_shift_unit": "fraction of the object size (the initial mesh's longest bounding-box side); "
+                                 "center_shift_scene: of the mean camera distance from the cameras' centroid",
+            **{k: cor.get(k) for k in ("mean_rotation_deg", "max_rotation_deg", "mean_center_shift_object",
+                                       "max_center_shift_object", "focal_scale", "principal_shift",
+                                       "intrinsics_before", "intrinsics_after")},
+        }
+    if isinstance(cam.get("heldout_alignment"), dict):
+        h = cam["heldout_alignment"]
+        out["heldout_alignment"] = {k: h.get(k) for k in ("mean_rotation_deg", "max_rotation_deg",
+                                                          "mean_center_shift_object", "max_center_shift_object")}
+    return out
 
 
 def asset_frame(glb) -> dict:

@@ -97,10 +97,12 @@ class Model:
 
 
 def write_model(folder: Path) -> Model:
-    """Write the model as ``folder/optimize/*`` and ``folder/poses/cameras.json``."""
+    """Write the model as ``folder/optimize/*`` (``cameras.json`` included) and ``folder/poses/cameras.json``."""
     mesh, maps, cams = make_mesh(), make_maps(), make_cameras()
     write_obj(folder / "optimize" / "mesh.obj", mesh)
     for name, a in maps.items():
         write_exr(folder / "optimize" / f"{name}.exr", a)
     save_cameras(folder / "poses" / "cameras.json", cams)
+    save_cameras(folder / "optimize" / "cameras.json", cams)  # the optimize stage's (given cameras pass unchanged)
+    (folder / "poses" / "poses.json").write_text('{"source": "given"}')  # the poses stage's record beside it
     return Model(folder, mesh, maps, cams)

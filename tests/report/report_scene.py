@@ -4,7 +4,7 @@ A UV sphere (lat-long UVs, a seam at u = 0/1) with spatially varying maps, three
 held-out view, written in the layout of DESIGN section 2::
 
     <root>/results/cap/optimize/{mesh.obj, diffuse.exr, specular.exr, roughness.exr,
-                                 log.jsonl, summary.json}
+                                 log.jsonl, summary.json, cameras.json}
     <root>/results/cap/export/asset.glb           (recon.export.export_asset)
     <root>/results/cap/poses/cameras.json
     <root>/results/cap/linear/<stem>.exr          inputs: the model rendered by the forward
@@ -173,6 +173,7 @@ def build(root: Path) -> Scene:
 
     cams = cameras()
     save_cameras(results / "poses" / "cameras.json", cams)
+    save_cameras(opt / "cameras.json", cams)  # the optimize stage's cameras (given ones pass unchanged)
     export_asset(opt / "mesh.obj", opt / "diffuse.exr", opt / "specular.exr", opt / "roughness.exr",
                  results / "export", ExportSettings(), cameras_json=results / "poses" / "cameras.json")
 

@@ -13,7 +13,7 @@ rule export:
         diffuse=f"{RESULTS}/{{capture}}/optimize/diffuse.exr",
         specular=f"{RESULTS}/{{capture}}/optimize/specular.exr",
         roughness=f"{RESULTS}/{{capture}}/optimize/roughness.exr",
-        cameras=get_cameras,
+        cameras=f"{RESULTS}/{{capture}}/optimize/cameras.json",
         masks=get_view_masks,
         views=get_views,
     output:

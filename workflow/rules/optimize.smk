@@ -2,6 +2,9 @@
 # the SVBRDF maps (recon.optimize). Every view of the cameras is used: the linear (or
 # undistorted) views, their masks and clipped-pixel masks come from the folders that
 # get_views_dir / get_view_masks_dir name (common.smk).
+# optimize/cameras.json: the cameras of the final model (SfM cameras refined by the renderer
+# where the held-out views kept the refinement, else poses/cameras.json's); later stages that
+# render views (export's up axis, the report) read it.
 # optimize/checkpoints/ is deliberately not an output: Snakemake leaves it in place when the
 # job is killed or fails, and the next run (the profile's rerun-incomplete) resumes from its
 # last checkpoint. Outputs flagged update(): the previous result (minutes of compute) stays in
@@ -21,6 +24,7 @@ rule optimize:
         roughness=update(f"{RESULTS}/{{capture}}/optimize/roughness.exr"),
         log=update(f"{RESULTS}/{{capture}}/optimize/log.jsonl"),
         summary=update(f"{RESULTS}/{{capture}}/optimize/summary.json"),
+        cameras=update(f"{RESULTS}/{{capture}}/optimize/cameras.json"),
     log:
         f"{RESULTS}/{{capture}}/logs/optimize.log",
     benchmark:

@@ -19,7 +19,7 @@ rule report:
         roughness=f"{RESULTS}/{{capture}}/optimize/roughness.exr",
         optimize_log=f"{RESULTS}/{{capture}}/optimize/log.jsonl",
         glb=f"{RESULTS}/{{capture}}/export/asset.glb",
-        cameras=get_cameras,
+        cameras=f"{RESULTS}/{{capture}}/optimize/cameras.json",
         linear=f"{RESULTS}/{{capture}}/linear/linear.json",
         masks=f"{RESULTS}/{{capture}}/masks/masks.json",
         gt=get_gt_files,

@@ -1,0 +1,187 @@
+"""Camera refinement inside the optimize stage (issue 17): given cameras untouched, SfM cameras
+refined and written to optimize/cameras.json, checkpoints carry the corrections, the held-out
+selection and what the report shows of it. The tiny capture of test_loop.py (same kernels)."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from recon.io.cameras import Camera, CameraSet, load_cameras, save_cameras
+from recon.io.mesh import read_obj
+from recon.metrics import pose_errors
+from recon.optimize import OptimizeSettings, StageSettings, optimize_capture
+from recon.optimize import objective
+from recon.optimize.camera_refine import rotation_exp
+from recon.report.html import Page, render_page
+from recon.report.stage import camera_refinement
+
+TINY = OptimizeSettings(
+    resolution=32, spp=1, views_per_iteration=4, checkpoint_every=100, w_edge=0.01,
+    stages=(StageSettings(0.12, 32, 4),), select_material=False, select_image_size=32, select_spp=1,
+    camera_align_iterations=6,
+)
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    import synthetic
+
+    root = tmp_path_factory.mktemp("capture")
+    synthetic.make_capture(root, n_views=8, size=32, spp=16, subdivisions=3)
+    return root
+
+
+def _inputs(root):
+    return sorted((root / "images").glob("*.exr")), sorted((root / "masks").glob("*.png"))
+
+
+def _sfm_cameras(root, folder, deg=1.0, seed=0):
+    """The capture's cameras, each rotated by ``deg`` about its centre, as an SfM result
+    (poses.json source "sfm" beside cameras.json)."""
+    true = load_cameras(root / "cameras.json")
+    rng = np.random.default_rng(seed)
+    out = []
+    for c in true.frames:
+        w = rng.normal(size=3)
+        w *= np.deg2rad(deg) / np.linalg.norm(w)
+        E = rotation_exp(torch.tensor(w)).numpy()
+        T = c.world_to_camera.copy()
+        T[:3, :3], T[:3, 3] = E @ T[:3, :3], E @ T[:3, 3]
+        out.append(Camera(c.image, c.width, c.height, c.K.copy(), T))
+    folder.mkdir(parents=True, exist_ok=True)
+    save_cameras(folder / "cameras.json", CameraSet(tuple(out), true.light_intensity))
+    (folder / "poses.json").write_text(json.dumps({"source": "sfm"}))
+    return folder / "cameras.json", true
+
+
+def _settings(**kw):
+    return OptimizeSettings(**{**TINY.__dict__, **kw})
+
+
+def test_camera_mode_and_settings():
+    s = OptimizeSettings()
+    assert s.refine_cameras == "select"
+    assert s.camera_mode("sfm")[0] == "select"
+    assert s.camera_mode("given")[0] == "off" and s.camera_mode(None)[0] == "off"
+    assert OptimizeSettings(refine_given_cameras=True).camera_mode("given")[0] == "select"
+    assert OptimizeSettings(refine_cameras="off").camera_mode("sfm")[0] == "off"
+    with pytest.raises(ValueError, match="refine_cameras must be one of"):
+        OptimizeSettings(refine_cameras="yes")
+    with pytest.raises(ValueError, match="camera_sigma_rotation_deg"):
+        OptimizeSettings(camera_sigma_rotation_deg=0.0)
+    with pytest.raises(ValueError, match="w_camera"):
+        OptimizeSettings(w_camera=-1.0)
+    assert objective.weights(s)["camera"] == s.w_camera
+    assert objective.camera_terms(None, [0], objective.weights(s)) == {}
+
+
+def test_given_cameras_are_not_refined(capture, tmp_path):
+    """No poses.json (or source "given"): the default "select" does nothing and
+    optimize/cameras.json holds the input cameras unchanged."""
+    images, masks = _inputs(capture)
+    given = tmp_path / "poses"
+    given.mkdir()
+    shutil.copy(capture / "cameras.json", given / "cameras.json")
+    (given / "poses.json").write_text(json.dumps({"source": "given"}))
+    for cams_json in (capture / "cameras.json", given / "cameras.json"):
+        out = tmp_path / cams_json.parent.name / "out"
+        s = optimize_capture(images, masks, None, cams_json, capture / "init.obj", out, TINY, progress=False)
+        info = s["camera_refinement"]
+        assert info["mode"] == "off" and not info["refined"] and "corrections" not in info
+        assert not any(k == "loss_camera" for k in s["final_losses"])
+        a, b = load_cameras(out / "cameras.json"), load_cameras(cams_json)
+        for x, y in zip(a.frames, b.frames, strict=True):
+            assert x.image == y.image and np.array_equal(x.K, y.K)
+            assert np.array_equal(x.world_to_camera, y.world_to_camera)
+        assert a.extra["optimize_cameras"]["refined"] is False
+        assert a.light_intensity == b.light_intensity
+
+
+def test_sfm_cameras_refined_written_and_resumed(capture, tmp_path):
+    """Cameras 1 degree off, labelled SfM, refine "on": the renderer pulls them towards the
+    truth (rotation error after the Umeyama fit down), optimize/cameras.json holds them, and a
+    run interrupted after a checkpoint resumes to the same cameras and mesh."""
+    import drjit as dr
+
+    from recon.mi import load_variant
+
+    load_variant()
+    old = dr.thread_count()
+    dr.set_thread_count(1)  # float atomics of the backward pass ordered: resumed == uninterrupted
+    try:
+        images, masks = _inputs(capture)
+        cams_json, true = _sfm_cameras(capture, tmp_path / "poses")
+        s = _settings(refine_cameras="on", checkpoint_every=10, stages=(StageSettings(0.12, 32, 30),),
+                      camera_lr_rotation_deg=0.05)
+        ref = optimize_capture(images, masks, None, cams_json, capture / "init.obj", tmp_path / "ref", s,
+                               progress=False)
+        info = ref["camera_refinement"]
+        assert info["mode"] == "on" and info["refined"] and len(info["corrections"]["views"]) == 8
+        assert "loss_camera" in ref["final_losses"]
+        out = load_cameras(tmp_path / "ref" / "cameras.json")
+        assert out.extra["optimize_cameras"]["refined"] is True
+        before = pose_errors(load_cameras(cams_json), true)["mean_rotation_deg"]
+        after = pose_errors(out, true)["mean_rotation_deg"]
+        assert after < 0.9 * before, (before, after)
+        for c in out.frames:
+            assert np.all(np.isfinite(c.K)) and np.all(np.isfinite(c.world_to_camera))
+
+        class Stop(Exception):
+            pass
+
+        def stop_at(rec):
+            if rec["iteration"] == 14:
+                raise Stop
+
+        with pytest.raises(Stop):
+            optimize_capture(images, masks, None, cams_json, capture / "init.obj", tmp_path / "run", s,
+                             progress=False, callback=stop_at)
+        got = optimize_capture(images, masks, None, cams_json, capture / "init.obj", tmp_path / "run", s,
+                               progress=False)
+        assert got["iterations"] == ref["iterations"]
+        a, b = load_cameras(tmp_path / "run" / "cameras.json"), out
+        for x, y in zip(a.frames, b.frames, strict=True):
+            np.testing.assert_allclose(x.world_to_camera, y.world_to_camera, atol=1e-6)
+            np.testing.assert_allclose(x.K, y.K, rtol=1e-6)
+        np.testing.assert_allclose(read_obj(tmp_path / "run" / "mesh.obj").v_pos,
+                                   read_obj(tmp_path / "ref" / "mesh.obj").v_pos, atol=1e-5)
+    finally:
+        dr.set_thread_count(old)
+
+
+def test_select_decides_on_held_out_views_and_the_report_shows_it(capture, tmp_path):
+    """"select" on SfM-labelled cameras: two runs, held-out poses aligned for each, the paired
+    test decides; the outputs are the chosen run's (mesh = its checkpoint, training cameras
+    refined only when kept, held-out cameras aligned); metrics.json's section lists every view."""
+    images, masks = _inputs(capture)
+    cams_json, _ = _sfm_cameras(capture, tmp_path / "poses", deg=2.0, seed=1)
+    s = _settings(refine_cameras="select", stages=(StageSettings(0.12, 32, 12),))
+    summary = optimize_capture(images, masks, None, cams_json, capture / "init.obj", tmp_path / "out", s,
+                               progress=False)
+    info = summary["camera_refinement"]
+    sel = info["selection"]
+    assert info["mode"] == "select" and info["refined"] == sel["accepted"]
+    assert np.isfinite(sel["control_heldout_error"]) and np.isfinite(sel["refined_heldout_error"])
+    assert sel["gain"] == pytest.approx(sel["control_heldout_error"] - sel["refined_heldout_error"], abs=1e-9)
+    assert summary["phase_seconds"]["cameras"] > 0 and len(sel["run_seconds"]) == 2
+    held = summary["holdout"]["held_out"]
+    assert len(held) == 2 and info["heldout_alignment"]["mean_rotation_deg"] > 0
+    chosen = tmp_path / "out" / "checkpoints" / ("cameras" if info["refined"] else "")
+    state = torch.load(chosen / "last.pt", map_location="cpu", weights_only=False)
+    np.testing.assert_allclose(read_obj(tmp_path / "out" / "mesh.obj").v_pos, state["mesh"]["v_pos"], atol=1e-5)
+    given, out = load_cameras(cams_json).by_stem(), load_cameras(tmp_path / "out" / "cameras.json").by_stem()
+    for stem, c in out.items():
+        moved = not np.array_equal(c.world_to_camera, given[stem].world_to_camera)
+        assert moved == (stem in held or info["refined"]), stem
+    m = camera_refinement(summary)
+    assert set(m["corrections"]["views"]) == set(given) - set(held)
+    for v in m["corrections"]["views"].values():
+        assert v["rotation_deg"] >= 0 and v["center_shift"] >= 0
+    assert set(m["corrections"]["intrinsics_before"]) >= {"fx", "fy", "cx", "cy"}
+    assert m["corrections"]["intrinsics_before"]["width"] == 32
+    assert m["selection"]["accepted"] == info["refined"]
+    page = render_page(Page(capture="c", preset=None, camera_refinement=m))
+    assert "Cameras refined by the renderer" in page and all(f"<td>{v}</td>" in page for v in m["corrections"]["views"])
