@@ -28,7 +28,7 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-STAGES = ("linearize", "masks", "poses", "init_mesh", "uv", "optimize", "export", "report")
+STAGES = ("check", "linearize", "masks", "poses", "init_mesh", "uv", "optimize", "export", "report")
 """The stages in pipeline order (the rules of workflow/rules/, DESIGN section 2)."""
 
 # slurmstepd's line in a job's output when SLURM ends it: "*** JOB 12 ON node CANCELLED AT

@@ -26,7 +26,7 @@ def _finish(results, capture, stages):
 def test_finished_failed_and_not_started(tmp_path):
     results = tmp_path / "results"
     _finish(results, "good", STAGES)
-    _finish(results, "bad", STAGES[:1])
+    _finish(results, "bad", STAGES[:2])
     (results / "bad" / "logs" / "masks.log").write_text(
         "10:00:01 INFO recon.masks: 12 images\n"
         "10:00:02 ERROR recon.logs: masks failed: /c/bad/images/0003.png: empty mask; give masks/0003.png\n")
@@ -37,10 +37,10 @@ def test_finished_failed_and_not_started(tmp_path):
     assert by["bad"]["status"] == "failed" and by["bad"]["failed_stage"] == "masks"
     assert by["bad"]["reason"] == "masks failed: /c/bad/images/0003.png: empty mask; give masks/0003.png"
     assert by["bad"]["log"].endswith("bad/logs/masks.log")
-    assert by["later"]["status"] == "not finished" and "linearize did not run" in by["later"]["reason"]
+    assert by["later"]["status"] == "not finished" and "check did not run" in by["later"]["reason"]
     text = md.read_text()
     assert "3 captures: 1 finished, 1 failed, 1 not finished." in text
-    assert "| bad | failed | 1/8 | masks | masks failed: /c/bad/images/0003.png: empty mask" in text
+    assert "| bad | failed | 2/9 | masks | masks failed: /c/bad/images/0003.png: empty mask" in text
 
 
 @pytest.mark.parametrize("line, expected", [

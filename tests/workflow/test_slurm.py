@@ -48,7 +48,7 @@ from _slurm_cluster import (
 pytestmark = pytest.mark.slurm
 
 N_SYNTH = 10
-BROKEN = "syn04"  # one photo of this capture is not an image: its linearize fails
+BROKEN = "syn04"  # one photo of this capture is not an image: its check (the first stage) fails
 ITERATIONS = 100  # optimize of the killed capture (checkpoint every 5)
 STAGES_BEFORE_OPTIMIZE = ("linear", "masks", "poses", "init_mesh", "uv")
 # Keys of the stages' JSON files that differ between any two runs: timings, and the similarity
@@ -144,12 +144,12 @@ def test_the_shelf_summary_names_the_failure(shelf):
     assert sorted(by_name) == sorted(["demo"] + [f"syn{i:02d}" for i in range(N_SYNTH)])
     for name, c in by_name.items():
         if name == BROKEN:
-            assert c["status"] == "failed" and c["failed_stage"] == "linearize", c
+            assert c["status"] == "failed" and c["failed_stage"] == "check", c
             assert "0002.exr" in c["reason"], c
         else:
-            assert c["status"] == "finished" and len(c["stages_done"]) == 8, c
+            assert c["status"] == "finished" and len(c["stages_done"]) == 9, c
     assert f"{N_SYNTH + 1} captures: {N_SYNTH} finished, 1 failed" in text
-    assert re.search(rf"^\| {BROKEN} \| failed \| 0/8 \| linearize \| .*0002\.exr", text, re.MULTILINE)
+    assert re.search(rf"^\| {BROKEN} \| failed \| 0/9 \| check \| .*0002\.exr", text, re.MULTILINE)
 
 
 def _comparable(value, capture: str):
