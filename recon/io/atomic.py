@@ -36,13 +36,20 @@ def _umask() -> int:
 
 
 def _running(pid: int) -> bool:
+    """Whether process ``pid`` may still write: it exists and is not a zombie. A writer killed
+    together with its parent (kill -9 of the run's process group) stays a zombie until init
+    reaps it, which can be after the next run has started; it never writes again."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:  # someone else's live process
         return True
-    return True
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:  # no procfs (not Linux), or gone meanwhile
+        return True
+    return stat[stat.rindex(")") + 2 :][:1] not in ("Z", "X")  # state after "pid (comm) "
 
 
 def _fsync(path: Path, directory: bool = False) -> None:

@@ -1,5 +1,6 @@
 import os
 import stat
+import time
 from pathlib import Path
 
 import pytest
@@ -81,6 +82,29 @@ def test_temporaries_of_a_killed_writer_are_removed_by_the_next_one(tmp_path):
         t.write_text("new")
     assert sorted(p.name for p in tmp_path.iterdir()) == [alive.name, "file.txt", "stage"]
     assert (tmp_path / "stage" / "x").read_text() == "new"
+
+
+def test_a_zombie_writers_temporaries_are_removed(tmp_path):
+    """A writer killed with its parent stays a zombie until init reaps it, possibly after the
+    next run has started: a zombie never writes again, so its temporaries go (seen in the kill
+    tests: every killed stage's temporary was left while the rerun ran)."""
+    import signal
+    import subprocess
+    import sys
+
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        child.send_signal(signal.SIGKILL)
+        deadline = time.monotonic() + 10
+        while Path(f"/proc/{child.pid}/stat").read_text().split(") ")[1][:1] != "Z":  # not reaped yet
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        (tmp_path / f".stage.tmp-{child.pid}-zombie").mkdir()
+        with atomic_dir(tmp_path / "stage") as d:
+            (d / "x").write_text("new")
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["stage"]
+    finally:
+        child.wait()
 
 
 def test_data_reach_the_disk_before_the_rename(tmp_path, monkeypatch):
