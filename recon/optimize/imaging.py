@@ -50,7 +50,7 @@ import torch
 
 from recon.optimize import objective
 from recon.optimize.gbuffer import GBuffer, _lookup, build_gbuffer, radiance
-from recon.optimize.material import Fit, MaterialModel, SelectionSettings, _Params, compare
+from recon.optimize.material import Fit, MaterialModel, SelectionSettings, _Params, _Problem, compare
 from recon.optimize.views import ViewSet
 
 log = logging.getLogger(__name__)
@@ -266,30 +266,18 @@ def _camera_arrays(cameras) -> tuple[torch.Tensor, torch.Tensor]:
     return R, o
 
 
-class ImagingProblem:
-    """A G-buffer and its targets (the kept pixels as in the material fits) with the per-pixel
-    data the imaging terms need: view index, squared image radius, checkerboard tile colour."""
+class ImagingProblem(_Problem):
+    """A G-buffer and its targets (the kept pixels as in the material fits,
+    :class:`recon.optimize.material._Problem`) with the per-pixel data the imaging terms need:
+    view index, squared image radius, checkerboard tile colour."""
 
     def __init__(self, gb: GBuffer, targets: ViewSet, tone: str, scale: float, tile: int = 8):
         if gb.position is None:
             raise ValueError("ImagingProblem needs a G-buffer with positions and normals (build_gbuffer)")
+        super().__init__(gb, targets, tone, scale)
         V, H, W = gb.shape
-        keep = np.zeros(V * H * W, bool)
-        keep[gb.pixel.numpy()] = True
-        keep |= np.asarray(targets.masks).reshape(-1) > 0
-        self.pixels = np.flatnonzero(keep)
-        remap = np.full(V * H * W, -1, np.int64)
-        remap[self.pixels] = np.arange(len(self.pixels))
-        self.gb = gb
-        self.grid = gb.grid
-        self.sample_pixel = torch.from_numpy(remap[gb.pixel.numpy()])
         self.sample_view = gb.pixel // (H * W)
-        self.n_total = V * H * W
-        self.tone, self.scale = tone, scale
-        tgt = targets.images.reshape(-1, 3)[torch.from_numpy(self.pixels)]
-        self.target_phi = objective.tone_map(tgt, tone, scale)
-        self.target_linear = tgt
-        self.weight = targets.weights.reshape(-1, 1)[torch.from_numpy(self.pixels)]
+        self.target_linear = targets.images.reshape(-1, 3)[torch.from_numpy(self.pixels)]
         rest = self.pixels % (H * W)
         row, col = rest // W, rest % W
         self.pixel_view = torch.from_numpy(self.pixels // (H * W))
@@ -323,9 +311,6 @@ class ImagingProblem:
         if im.model.has("tone"):
             out = apply_tone(out, im.tone_raw)
         return out
-
-    def pixel_errors(self, rendered: torch.Tensor) -> torch.Tensor:
-        return objective.pixel_loss(rendered, self.target_phi, self.weight, self.tone, self.scale)
 
     def loss(self, rendered: torch.Tensor, select: torch.Tensor | None = None) -> torch.Tensor:
         e = self.pixel_errors(rendered)
