@@ -29,6 +29,7 @@ import subprocess
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from _slurm_cluster import (
@@ -165,9 +166,16 @@ def _comparable(value, capture: str):
     return value
 
 
+# Relative tolerance of the numbers the stages before optimize derive from the cameras. COLMAP's
+# bundle adjustment sums in another order with another number of threads, so the cameras of two
+# runs differ in the 14th-15th digit; the visual hull, remeshing and resampling carry that on:
+# measured 3.4e-9 in the demo's initial-mesh volume (SLURM jobs with 1 thread against a local run
+# with 2). A real difference (another view set, other settings) is many orders larger.
+REL_TOL = 1e-6
+
+
 def _assert_close(a, b, where: str) -> None:
-    """Equal JSON values, floats to 1e-9 (COLMAP's bundle adjustment sums in another order with
-    another number of threads: the demo's poses differed in the 15th digit)."""
+    """Equal JSON values, floats to :data:`REL_TOL`."""
     if isinstance(a, dict):
         assert isinstance(b, dict) and sorted(a) == sorted(b), where
         for k in a:
@@ -177,7 +185,7 @@ def _assert_close(a, b, where: str) -> None:
         for i, (x, y) in enumerate(zip(a, b, strict=True)):
             _assert_close(x, y, f"{where}[{i}]")
     elif isinstance(a, float) or isinstance(b, float):
-        assert math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12), (where, a, b)
+        assert math.isclose(a, b, rel_tol=REL_TOL, abs_tol=1e-12), (where, a, b)
     else:
         assert a == b, (where, a, b)
 
@@ -185,6 +193,33 @@ def _assert_close(a, b, where: str) -> None:
 def _files(folder: Path) -> set[str]:
     return {p.relative_to(folder).as_posix() for p in folder.rglob("*")
             if p.is_file() and p.relative_to(folder).parts[0] not in ("logs", "benchmarks")}
+
+
+def _assert_same_numbers(a: Path, b: Path, rel: str) -> None:
+    """Files that derive from the cameras (meshes, resampled views) may differ in the last bits
+    (see REL_TOL): the same mesh topology and UVs with vertices within REL_TOL of the object's size,
+    the same images within REL_TOL of their largest value; anything else must be byte-identical."""
+    from recon.io.images import read_exr
+    from recon.io.mesh import read_mesh
+    from recon.segment import read_points_ply
+
+    if rel.endswith((".ply", ".obj")) and not rel.endswith("points.ply"):
+        ma, mb = read_mesh(a), read_mesh(b)
+        np.testing.assert_array_equal(ma.t_pos_idx, mb.t_pos_idx, err_msg=rel)
+        size = float(np.ptp(ma.v_pos, axis=0).max())
+        np.testing.assert_allclose(mb.v_pos, ma.v_pos, rtol=0, atol=REL_TOL * size, err_msg=rel)
+        if ma.v_tex is not None or mb.v_tex is not None:
+            np.testing.assert_array_equal(ma.t_tex_idx, mb.t_tex_idx, err_msg=rel)
+            np.testing.assert_allclose(mb.v_tex, ma.v_tex, rtol=0, atol=REL_TOL, err_msg=rel)
+    elif rel.endswith("points.ply"):
+        pa, pb = read_points_ply(a), read_points_ply(b)
+        assert pa.shape == pb.shape, rel
+        np.testing.assert_allclose(pb, pa, rtol=0, atol=REL_TOL * float(np.ptp(pa, axis=0).max()), err_msg=rel)
+    elif rel.endswith(".exr"):
+        ia, ib = read_exr(a), read_exr(b)
+        np.testing.assert_allclose(ib, ia, rtol=0, atol=REL_TOL * float(np.abs(ia).max()), err_msg=rel)
+    else:
+        raise AssertionError(f"{rel} differs between the local and the SLURM run")
 
 
 def _compare_with_local(slurm: Path, local: Path):
@@ -198,8 +233,8 @@ def _compare_with_local(slurm: Path, local: Path):
         if rel.endswith(".json"):
             _assert_close(_comparable(json.loads(a.read_text()), slurm.name),
                           _comparable(json.loads(b.read_text()), slurm.name), rel)
-        else:
-            assert a.read_bytes() == b.read_bytes(), f"{rel} differs between the local and the SLURM run"
+        elif a.read_bytes() != b.read_bytes():
+            _assert_same_numbers(a, b, rel)
     ma = json.loads((local / "report" / "metrics.json").read_text())
     mb = json.loads((slurm / "report" / "metrics.json").read_text())
     assert mb["optimize"]["iterations"] == ma["optimize"]["iterations"]
