@@ -213,6 +213,8 @@ class CollocatedRenderer:
         self._projective = None
         self.timings: dict[str, float] = {}
         self._t_mark = 0.0
+        self._offset = None  # the call's flash offset (3 opaque Floats), see render_batch
+        self._ambient = None  # the call's ambient radiance / I_e (opaque Float)
 
     def _mark(self, phase: str | None, *evaluate) -> None:
         """With ``settings.profile``: evaluate ``evaluate``, wait, and book the time since the
@@ -345,10 +347,15 @@ class CollocatedRenderer:
         pi = scene.ray_intersect_preliminary(ray, coherent=coherent)
         return pi.prim_index, pi.is_valid(), pi.t
 
-    def _shade(self, o, d, prim, valid, v_flat, n_flat, tex):
+    def _shade(self, o, d, prim, valid, v_flat, n_flat, tex, light=None):
         """Radiance/I_e toward the camera at the first hit of rays (o, d) (Color3f), differentiable.
 
         The hit is recomputed from the (differentiable) triangle ``prim`` on the fixed ray.
+        ``light``: per-lane point light positions (the flash beside the lens) for the general
+        model of DESIGN section 3 (l != v); None: the light is at ``o`` (the collocated model).
+        The call's ambient radiance (``self._ambient``, relative to I_e) adds ``A (a_d + a_s)``
+        at every hit (an unoccluded constant environment, as the imaging model of
+        :mod:`recon.optimize.imaging` has it).
         """
         dr, mi = self.dr, self.mi
         base = prim * 3
@@ -383,10 +390,20 @@ class CollocatedRenderer:
         a_d = _bilinear(dr, mi, tex["diffuse"], uv, valid)
         a_s = _bilinear(dr, mi, tex["specular"], uv, valid)
         r = _bilinear(dr, mi, tex["roughness"], uv, valid)
-        # ---- collocated BRDF (DESIGN section 3) times the cosine and the falloff
         r = dr.clip(r, self.settings.r_min, 1.0)
         alpha = r * r
         a2 = alpha * alpha
+        if light is not None:
+            out = self._shade_offset(y, n, w, mu, light, a_d, a_s, a2, valid)
+        else:
+            out = self._shade_collocated(mu, sin2, dist2, a_d, a_s, a2, valid)
+        if self._ambient is not None:
+            out = out + dr.select(valid, self._ambient * (a_d + a_s), 0.0)
+        return out
+
+    def _shade_collocated(self, mu, sin2, dist2, a_d, a_s, a2, valid):
+        """The collocated BRDF (DESIGN section 3) times the cosine and the falloff."""
+        dr = self.dr
         mu_p = dr.maximum(mu, 0.0)
         den = dr.fma(mu_p * mu_p, a2, sin2)  # mu^2 (a2 - 1) + 1
         D = a2 * dr.rcp(dr.pi * dr.maximum(den * den, 1e-30))
@@ -395,6 +412,44 @@ class CollocatedRenderer:
         f = a_d * dr.inv_pi + a_s * spec
         lit = valid & (mu > 0)
         return dr.select(lit, f * (mu_p * dr.rcp(dr.maximum(dist2, 1e-30))), 0.0)
+
+    def _shade_offset(self, y, n, w, nv, light, a_d, a_s, a2, valid):
+        """The general model of DESIGN section 3 for a light at ``light`` seen from the camera
+        (unit direction ``w`` from the hit ``y``, ``nv`` = n . w): GGX D(n . h), Schlick F(v . h),
+        separable Smith G1, times n . l / |light - y|^2. No shadow test: the flash sits ~1 cm from
+        the lens, so what the camera sees is lit except in slivers."""
+        dr = self.dr
+        lv = light - y
+        dl2 = dr.squared_norm(lv)
+        l = lv * dr.rsqrt(dr.maximum(dl2, 1e-30))  # noqa: E741
+        nl = dr.dot(n, l)
+        nl_p = dr.maximum(nl, 0.0)
+        nv_p = dr.maximum(nv, 0.0)
+        hv = _safe_normalize(dr, l + w)
+        nh = dr.clip(dr.dot(n, hv), 0.0, 1.0)
+        vh = dr.clip(dr.dot(w, hv), 0.0, 1.0)
+        # 1 - (n . h)^2 as |n x h|^2: exact near the specular peak
+        den = dr.fma(nh * nh, a2, dr.squared_norm(dr.cross(n, hv)))
+        D = a2 * dr.rcp(dr.pi * dr.maximum(den * den, 1e-30))
+        one_vh = 1.0 - vh
+        F = a_s + (1.0 - a_s) * (one_vh * one_vh) * (one_vh * one_vh) * one_vh
+        gl = dr.rcp(nl_p + dr.sqrt(dr.fma(1.0 - a2, nl_p * nl_p, a2)))  # G1(n.l) / (2 n.l)
+        gv = dr.rcp(nv_p + dr.sqrt(dr.fma(1.0 - a2, nv_p * nv_p, a2)))
+        f = a_d * dr.inv_pi + D * F * gl * gv
+        lit = valid & (nl > 0) & (nv > 0)
+        return dr.select(lit, f * (nl_p * dr.rcp(dr.maximum(dl2, 1e-30))), 0.0)
+
+    def _lights(self, cam_table, view):
+        """Per-lane flash positions c + R^T t of the call's offset t (camera coordinates), or
+        None when the light is at the camera centre."""
+        if self._offset is None:
+            return None
+        mi = self.mi
+        g = self._cam_values(cam_table, view)
+        R, t = g[9:18], self._offset
+        return mi.Point3f(g[21] + R[0] * t[0] + R[3] * t[1] + R[6] * t[2],
+                          g[22] + R[1] * t[0] + R[4] * t[1] + R[7] * t[2],
+                          g[23] + R[2] * t[0] + R[5] * t[1] + R[8] * t[2])
 
     # ------------------------------------------------------------------ rays
     def _primary_rays(self, cam_table, n_views: int, width: int, height: int, spp: int, seed):
@@ -422,7 +477,7 @@ class CollocatedRenderer:
         x = mi.Float(col) + ux
         yv = mi.Float(row) + uy
         o, d = self._rays_through(cam_table, view, x, yv)
-        return o, d
+        return o, d, view
 
     def _rays_through(self, cam_table, view, x, y):
         """World rays (origin, unit direction) through image points (x, y) of ``view``."""
@@ -446,7 +501,7 @@ class CollocatedRenderer:
 
     # ------------------------------------------------------------------ public
     def render(self, v_pos, diffuse, specular, roughness, cameras: Sequence[Camera],
-               light_intensity: float = 1.0, seed: int = 0):
+               light_intensity: float = 1.0, seed: int = 0, flash_offset=None, ambient: float = 0.0):
         """Render a batch of views.
 
         Parameters
@@ -460,6 +515,8 @@ class CollocatedRenderer:
             I_e of the point light at each camera center.
         seed : int
             Seeds the pixel and edge samples (same seed, same samples).
+        flash_offset, ambient :
+            The flash beside the lens and a constant environment (see :meth:`render_batch`).
 
         Returns
         -------
@@ -474,14 +531,21 @@ class CollocatedRenderer:
             groups.setdefault((int(cam.height), int(cam.width)), []).append(i)
         for g, ids in enumerate(groups.values()):
             batch = self.render_batch(v_pos, diffuse, specular, roughness,
-                                      [cameras[i] for i in ids], light_intensity, seed + 7919 * g)
+                                      [cameras[i] for i in ids], light_intensity, seed + 7919 * g,
+                                      flash_offset=flash_offset, ambient=ambient)
             for k, i in enumerate(ids):
                 out[i] = batch[k]
         return out
 
     def render_batch(self, v_pos, diffuse, specular, roughness, cameras: Sequence[Camera],
-                     light_intensity: float = 1.0, seed: int = 0, camera_table=None):
+                     light_intensity: float = 1.0, seed: int = 0, camera_table=None,
+                     flash_offset=None, ambient: float = 0.0):
         """Like :meth:`render` for views of one size; returns one mi.TensorXf (B, h, w, 3).
+
+        ``flash_offset`` : (3,) position of the point light relative to the camera centre, in
+        camera coordinates (a phone's flash beside the lens; None or zeros: at the centre, the
+        collocated model). ``ambient`` : radiance of a constant environment (>= 0), added as
+        ``ambient (a_d + a_s)`` at every hit. Both are fixed values (no gradients).
 
         ``camera_table`` : optional flat mi.Float of B x 24 values (per view Kinv, R_w2c, t_w2c,
         center; :func:`camera_table`) at the values of ``cameras``; when its gradients are
@@ -498,14 +562,27 @@ class CollocatedRenderer:
             raise RenderError("render_batch: all cameras need the same image size; use render()")
         if not np.isfinite(light_intensity) or light_intensity < 0:
             raise RenderError(f"light_intensity must be a finite number >= 0, got {light_intensity}")
+        offset = None if flash_offset is None else np.asarray(flash_offset, np.float64).reshape(-1)
+        if offset is not None and (offset.shape != (3,) or not np.all(np.isfinite(offset))):
+            raise RenderError(f"flash_offset must be 3 finite numbers (camera coordinates), got {flash_offset!r}")
+        if offset is not None and not np.any(offset):
+            offset = None  # at the centre: the collocated model (and its kernels)
+        if not np.isfinite(ambient) or ambient < 0:
+            raise RenderError(f"ambient must be a finite number >= 0, got {ambient}")
+        if ambient > 0 and not light_intensity > 0:
+            raise RenderError("ambient light needs light_intensity > 0 (it is rendered relative to I_e)")
         if self.settings.boundary == "projective":
             from recon.render.mitsuba_scene import render_projective
 
             if camera_table is not None:
                 raise RenderError("camera gradients need boundary='edge' or 'none', not 'projective'")
 
+            if offset is not None or ambient > 0:
+                raise RenderError("flash_offset and ambient need boundary='edge' or 'none', not 'projective'")
             return render_projective(self, v_pos, diffuse, specular, roughness, cameras,
                                      light_intensity, seed)
+        self._offset = None if offset is None else [dr.opaque(mi.Float, float(x)) for x in offset]
+        self._ambient = dr.opaque(mi.Float, float(ambient) / float(light_intensity)) if ambient > 0 else None
         self._mark(None)
         v_flat, nv = self._vertex_array(v_pos)
         tex = {
@@ -531,9 +608,9 @@ class CollocatedRenderer:
         spp = int(self.settings.spp)
         seed_o = dr.opaque(mi.UInt32, np.uint32(seed & 0xFFFFFFFF))
         # ---- Interior: MC over pixel footprints, AD through the integrand
-        o, d = self._primary_rays(cam_table, B, w, h, spp, seed_o)
+        o, d, view = self._primary_rays(cam_table, B, w, h, spp, seed_o)
         prim, valid, _ = self._trace(scene, o, d)
-        L = self._shade(o, d, prim, valid, v_flat, n_flat, tex)
+        L = self._shade(o, d, prim, valid, v_flat, n_flat, tex, self._lights(cam_table, view))
         inv = dr.opaque(mi.Float, float(light_intensity) / spp)
         flat = dr.zeros(mi.Float, B * h * w * 3)
         pix3 = (dr.arange(mi.UInt32, B * h * w * spp) // spp) * 3
@@ -552,7 +629,8 @@ class CollocatedRenderer:
         return mi.TensorXf(flat, shape=(B, h, w, 3))
 
     def render_torch(self, v_pos, diffuse, specular, roughness, cameras: Sequence[Camera],
-                     light_intensity: float = 1.0, seed: int = 0, camera_table=None):
+                     light_intensity: float = 1.0, seed: int = 0, camera_table=None,
+                     flash_offset=None, ambient: float = 0.0):
         """Render with PyTorch tensors; autograd reaches all four inputs (and the cameras).
 
         Parameters
@@ -563,6 +641,7 @@ class CollocatedRenderer:
         roughness : torch.Tensor (H, W, 1)
         cameras : sequence of B :class:`Camera`, all of one image size
         light_intensity, seed : as in :meth:`render`
+        flash_offset, ambient : as in :meth:`render_batch` (fixed values)
         camera_table : torch.Tensor (B, 24), optional
             The cameras' values (:func:`camera_table`; e.g. from
             :func:`recon.render.torch_bridge.camera_table_torch`); autograd reaches it.
@@ -591,10 +670,11 @@ class CollocatedRenderer:
                 camera_table.detach().to(torch.float32).reshape(-1).contiguous().clone())
             out = self.render_batch(
                 *(mi.TensorXf(t.detach().to(torch.float32).contiguous().clone()) for t in tensors),
-                cameras, float(light_intensity), int(seed), camera_table=table)
+                cameras, float(light_intensity), int(seed), camera_table=table,
+                flash_offset=flash_offset, ambient=float(ambient))
             return out.torch().clone().to(v_pos.device)
         return RenderFunction.apply(self, cameras, float(light_intensity), int(seed),
-                                    *tensors, camera_table)
+                                    *tensors, camera_table, (flash_offset, float(ambient)))
 
     # ------------------------------------------------------------------ boundary
     def _boundary_term(self, image, scene, v_flat, n_flat, tex, cameras, cam_table,
@@ -694,13 +774,14 @@ class CollocatedRenderer:
             off = dr.select((lane & 1) == 1, eps, -eps)
             sx = dr.gather(mi.Float, x, sid) + off * dr.gather(mi.Float, nx, sid)
             sy = dr.gather(mi.Float, y, sid) + off * dr.gather(mi.Float, ny, sid)
-            o, dvec = self._rays_through(cam_table, dr.gather(mi.UInt32, view, sid), sx, sy)
+            lane_view = dr.gather(mi.UInt32, view, sid)
+            o, dvec = self._rays_through(cam_table, lane_view, sx, sy)
             self._mark("edge_setup")
             prim, valid, thit = self._trace(scene, o, dvec)
             thit = dr.select(valid, thit, dr.inf)
             dr.eval(prim, valid, thit)
             self._mark("edge_trace")
-            Ls = self._shade(o, dvec, prim, valid, vd, nd, tex_d)
+            Ls = self._shade(o, dvec, prim, valid, vd, nd, tex_d, self._lights(cam_table, lane_view))
             dr.eval(Ls)
             self._mark("edge_shade")
             even = dr.arange(mi.UInt32, M) * 2

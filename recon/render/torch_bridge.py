@@ -22,11 +22,11 @@ def camera_table_torch(K: torch.Tensor, world_to_camera: torch.Tensor) -> torch.
 
 class RenderFunction(torch.autograd.Function):
     """``apply(renderer, cameras, light_intensity, seed, v_pos, diffuse, specular, roughness,
-    camera_table=None)`` -> (B, h, w, 3) float32 tensor."""
+    camera_table=None, lighting=(flash_offset, ambient))`` -> (B, h, w, 3) float32 tensor."""
 
     @staticmethod
     def forward(ctx, renderer, cameras, light_intensity, seed, v_pos, diffuse, specular, roughness,
-                camera_table=None):
+                camera_table=None, lighting=(None, 0.0)):
         dr, mi = renderer.dr, renderer.mi
         inputs = []
         for t in (v_pos, diffuse, specular, roughness):
@@ -40,7 +40,8 @@ class RenderFunction(torch.autograd.Function):
             if camera_table.requires_grad:
                 dr.enable_grad(table)
         inputs.append(table)
-        out = renderer.render_batch(*inputs[:4], cameras, light_intensity, seed, camera_table=table)
+        out = renderer.render_batch(*inputs[:4], cameras, light_intensity, seed, camera_table=table,
+                                    flash_offset=lighting[0], ambient=lighting[1])
         ctx.renderer = renderer
         ctx.dr_inputs = inputs
         ctx.dr_out = out
@@ -62,4 +63,4 @@ class RenderFunction(torch.autograd.Function):
                     grads[k] = dr.grad(x).torch().clone().to(ctx.device)
         if grads[4] is not None:
             grads[4] = grads[4].reshape(-1, 24)
-        return (None, None, None, None, *grads)
+        return (None, None, None, None, *grads, None)
