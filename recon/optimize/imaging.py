@@ -580,3 +580,139 @@ def run_imaging_selection(settings, mesh, maps: dict, material: MaterialModel, c
                              seed=int(settings.seed) + 17)
     ev["tone_curve"] = {"setting": settings.tone_curve, "photos_are_ldr": ldr, "tried": tone}
     return fit.material.maps, material, ev
+
+
+# ---------------------------------------------------------------------- inside the geometry loop
+def image_radius2(h: int, w: int) -> torch.Tensor:
+    """(h, w) squared radius from the image centre, 1 in the corners (the falloff's r^2)."""
+    row = torch.arange(h, dtype=torch.float32)[:, None] + 0.5 - h / 2
+    col = torch.arange(w, dtype=torch.float32)[None, :] + 0.5 - w / 2
+    return (row * row + col * col) / ((w / 2) ** 2 + (h / 2) ** 2)
+
+
+class LoopImaging:
+    """The imaging terms chosen on the coarse model, inside the coarse-to-fine loop
+    (``imaging_loop: select``): the flash offset and the ambient light go to the renderer as
+    fixed values (:meth:`lighting`), the exposure gains, falloff and tone curve act on the
+    rendered images (:meth:`apply`) and are refined with the shape (rate ``lr``; 0: fixed).
+
+    ``params`` is None until the selection ran (the stages before it render the ideal formation).
+    """
+
+    def __init__(self, lr: float, exposure_prior: float):
+        self.lr = float(lr)
+        self.exposure_prior = float(exposure_prior)
+        self.params: ImagingParams | None = None
+        self.evidence: dict | None = None
+        self.opt: torch.optim.Optimizer | None = None
+        self._r2: dict = {}
+
+    @property
+    def active(self) -> bool:
+        return self.params is not None
+
+    def adopt(self, params: ImagingParams | None, evidence: dict) -> None:
+        """Take the selection's fitted terms (None: nothing chosen, the ideal formation stays)."""
+        self.evidence = evidence
+        self.params = params
+        self.opt = None
+        if params is not None and self.lr > 0:
+            groups = [g for g in params.groups(self.lr) if g["params"][0] is not params.offset_raw
+                      and g["params"][0] is not params.ambient_raw]
+            if groups:
+                self.opt = torch.optim.Adam(groups)
+                for g in self.opt.param_groups:
+                    g["base_lr"] = g["lr"]
+
+    def lighting(self) -> dict:
+        """Renderer keywords: ``flash_offset`` (camera coordinates) and ``ambient`` (fixed)."""
+        if self.params is None:
+            return {}
+        with torch.no_grad():
+            off = self.params.offset()
+            amb = self.params.ambient()
+        return {"flash_offset": None if off is None else off.numpy().astype(np.float64),
+                "ambient": 0.0 if amb is None else float(amb)}
+
+    def apply(self, img: torch.Tensor, idx) -> torch.Tensor:
+        """(B, h, w, 3) rendered radiance of the training views ``idx`` -> predicted photo."""
+        p = self.params
+        if p is None:
+            return img
+        m = p.model
+        if m.has("exposure"):
+            g = p.gains()[torch.as_tensor(np.asarray(idx), dtype=torch.long)]
+            img = img * g[:, None, None, None].to(img.dtype)
+        if m.has("falloff"):
+            h, w = int(img.shape[1]), int(img.shape[2])
+            if (h, w) not in self._r2:
+                self._r2[(h, w)] = image_radius2(h, w)
+            img = img * falloff(self._r2[(h, w)], p.falloff_k)[None, :, :, None].to(img.dtype)
+        if m.has("tone"):
+            img = apply_tone(img, p.tone_raw)
+        return img
+
+    def prior(self) -> torch.Tensor:
+        """The exposure prior (0 without that term)."""
+        return torch.zeros(()) if self.params is None else self.params.prior(self.exposure_prior)
+
+    def zero_grad(self) -> None:
+        if self.opt is not None:
+            self.opt.zero_grad(set_to_none=True)
+
+    def step(self, factor: float) -> None:
+        if self.opt is not None:
+            for g in self.opt.param_groups:
+                g["lr"] = g["base_lr"] * factor
+            self.opt.step()
+
+    @torch.no_grad()
+    def report(self) -> dict:
+        out = {"evidence": self.evidence, "chosen": [] if self.params is None else list(self.params.model.terms)}
+        if self.params is not None:
+            out["values_after_loop"] = self.params.report()
+        return out
+
+    def state(self) -> dict:
+        p = self.params
+        return {"evidence": self.evidence,
+                "params": None if p is None else {
+                    "terms": list(p.model.terms), "n_views": int(p.log_gain.shape[0]), "length": p.length,
+                    "tone_scale": p.tone_scale, "knots": int(p.tone_raw.shape[0]),
+                    "offset_given": None if p.offset_given is None else p.offset_given.tolist(),
+                    "tensors": {k: getattr(p, k).detach().clone() for k in
+                                ("offset_raw", "log_gain", "ambient_raw", "falloff_k", "tone_raw")}},
+                "optimizer": None if self.opt is None else self.opt.state_dict()}
+
+    def load(self, state: dict) -> None:
+        sp = state["params"]
+        params = None
+        if sp is not None:
+            params = ImagingParams(ImagingModel(tuple(sp["terms"])), sp["n_views"], sp["length"], sp["tone_scale"],
+                                   sp["offset_given"], sp["knots"])
+            with torch.no_grad():
+                for k, v in sp["tensors"].items():
+                    getattr(params, k).copy_(v)
+        self.adopt(params, state["evidence"])
+        if self.opt is not None and state.get("optimizer") is not None:
+            self.opt.load_state_dict(state["optimizer"])
+            for g in self.opt.param_groups:
+                g.setdefault("base_lr", g["lr"])
+
+
+def select_for_loop(settings, mesh, maps: dict, material: MaterialModel, covered: np.ndarray, train_set: ViewSet,
+                    heldout_set: ViewSet, light: float, tone_scale: float, ldr: bool | None):
+    """The imaging selection on the coarse model (``imaging_loop: select``): (ImagingParams of
+    the chosen terms, or None when the ideal formation is kept and no flash offset is given;
+    the evidence)."""
+    terms = tuple(settings.imaging_terms)
+    tone = settings.tone_curve == "fit" or (settings.tone_curve == "auto" and bool(ldr))
+    if not tone:
+        terms = tuple(t for t in terms if t != "tone")
+    fit, ev = select_imaging(mesh, Fit(material, maps, float("nan")), covered, train_set, heldout_set, light,
+                             tone_scale, settings.selection_settings(), candidates=terms,
+                             offset_given=settings.flash_offset, spp=int(settings.select_spp),
+                             seed=int(settings.seed) + 23)
+    ev["tone_curve"] = {"setting": settings.tone_curve, "photos_are_ldr": ldr, "tried": tone}
+    keep = bool(fit.model.terms) or settings.flash_offset is not None
+    return (fit.params if keep else None), ev

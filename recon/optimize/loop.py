@@ -52,7 +52,7 @@ from recon.optimize.camera_refine import CameraRefinement, scene_extent
 from recon.optimize import regularizers as reg
 from recon.optimize.guard import SurfaceGuard, self_intersecting_faces
 from recon.optimize.largesteps import AdamUniform, LargeSteps
-from recon.optimize.imaging import run_imaging_selection
+from recon.optimize.imaging import ImagingSettings, LoopImaging, capture_is_ldr, run_imaging_selection, select_for_loop
 from recon.optimize.material import compare, heldout_error, model_from_settings, select_material
 from recon.optimize.params import TexturePyramid, albedo_param, constant_map, roughness_param
 from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, topology_report, unwrap
@@ -115,6 +115,8 @@ class _Run:
     fingerprint: str
     cameras: "_CameraFit | None" = None  # the camera refinement (None: the cameras are fixed)
     plane: SupportPlane | None = None  # the table the object stands on: no vertex goes below it
+    imaging: LoopImaging | None = None  # imaging terms in the loop (imaging_loop: select)
+    ldr: bool | None = None  # the photos were JPEG/PNG (the tone curve is tried)
 
     def lr_geometry(self, factor: float = 1.0) -> float:
         """Adam's geometry rate: ``lr_geometry`` is a fraction of the bounding box per step."""
@@ -287,9 +289,12 @@ def _forward_backward(st: _Stage, it: int, idx: np.ndarray, run: _Run, times: di
     if ref is not None:  # the corrected cameras, differentiable through the table
         table = ref.table(idx, cams)
         cams = ref.cameras(idx, cams)
+    lighting = run.imaging.lighting() if run.imaging is not None else {}
     img = st.renderer.render_torch(v.to(torch.float32), vals["diffuse"], vals["specular"], vals["roughness"],
                                    cams, run.light, seed=ckpt.render_seed(settings.seed, st.index, it),
-                                   camera_table=table)
+                                   camera_table=table, **lighting)
+    if run.imaging is not None:
+        img = run.imaging.apply(img, idx)
     t2 = time.perf_counter()
     terms = {"render": objective.render_loss(img, st.targets.images[idx], st.targets.weights[idx], settings.tone_map,
                                              run.tone_scale),
@@ -298,12 +303,16 @@ def _forward_backward(st: _Stage, it: int, idx: np.ndarray, run: _Run, times: di
         vals["specular"], vals["diffuse"], vals["roughness"], torch.from_numpy(st.covered), weights,
         settings.bilateral_sigma_space, settings.bilateral_sigma_color, settings.bilateral_radius))
     terms.update(objective.camera_terms(ref, idx, weights))
+    if run.imaging is not None and run.imaging.active and weights.get("imaging"):
+        terms["imaging"] = run.imaging.prior()
     total = objective.total(terms, weights)
     t3 = time.perf_counter()
     st.opt_geom.zero_grad(set_to_none=True)
     st.opt_tex.zero_grad(set_to_none=True)
     if run.cameras is not None:
         run.cameras.opt.zero_grad(set_to_none=True)
+    if run.imaging is not None:
+        run.imaging.zero_grad()
     total.backward()
     t4 = time.perf_counter()
     for phase, dt in (("geometry", t1 - t0), ("render", t2 - t1), ("loss", t3 - t2), ("backward", t4 - t3)):
@@ -369,6 +378,8 @@ def _iteration(st: _Stage, it: int, run: _Run, timer: _Timer) -> dict:
     st.opt_tex.step()
     if run.cameras is not None:
         run.cameras.step(f)
+    if run.imaging is not None:
+        run.imaging.step(f)
     p = _params(settings)
     for k in MAP_NAMES:
         st.maps[k].project_(p[k])
@@ -503,6 +514,12 @@ def optimize_capture(
 
     base = _Run(settings, tuple(stages), views, heldout, bbox_scale, weights, tone_scale, light, ckpt_dir, fp,
                 plane=plane)
+    if settings.imaging_loop != "off":
+        if heldout is None:
+            log.warning("imaging_loop: %s needs held-out views (at least 6 views); the loop renders the ideal "
+                        "formation", settings.imaging_loop)
+        else:
+            base = dataclasses.replace(base, ldr=capture_is_ldr(images))
     runs = []
     if mode in ("off", "select"):
         runs.append(base)
@@ -510,6 +527,8 @@ def optimize_capture(
         # its own checkpoints beside the control's, so either run resumes alone
         runs.append(dataclasses.replace(base, ckpt_dir=ckpt_dir / "cameras" if mode == "select" else ckpt_dir,
                                         fingerprint=fp + "+cameras", cameras=_CameraFit(views, settings)))
+    if settings.imaging_loop != "off" and heldout is not None:  # one per run: each selects on its own model
+        runs = [dataclasses.replace(r, imaging=LoopImaging(settings.imaging_loop_lr, ImagingSettings().exposure_prior)) for r in runs]
     done = [_execute(run, init, progress, callback) for run in runs]
 
     # ---- the cameras: held-out poses aligned, the refinement selected ----
@@ -599,6 +618,8 @@ def optimize_capture(
     summary["imaging_model"] = imaging["chosen"] if imaging else []
     summary["holdout"] = holdout_info
     summary["camera_refinement"] = camera_info
+    summary["imaging_loop"] = None if run.imaging is None else {
+        "setting": settings.imaging_loop, "stage": int(settings.imaging_loop_stage), **run.imaging.report()}
     _save(run, prog, st, int(stages[-1].iterations), done=True)
     out_dir.mkdir(parents=True, exist_ok=True)
     for k in MAP_NAMES:
@@ -629,6 +650,8 @@ def _execute(run: _Run, init: Mesh, progress: bool, callback) -> tuple[_Stage, _
         timer.total.update(state["timings"])
         if run.cameras is not None:
             run.cameras.load(state["cameras"])
+        if run.imaging is not None and state.get("imaging") is not None:
+            run.imaging.load(state["imaging"])
         log.info("resuming from checkpoint: stage %d, iteration %d", start_stage, start_it)
     elif run.cameras is not None:
         log.info("optimizing with the cameras refined")
@@ -795,6 +818,11 @@ def _run_stages(run: _Run, prog: _Progress, init: Mesh, state: dict | None, star
         prev_mesh = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
         with torch.no_grad():
             prev_maps = {k: v.numpy().astype(np.float32) for k, v in _map_values(settings, st.maps).items()}
+        if run.imaging is not None and run.imaging.evidence is None and si >= int(settings.imaging_loop_stage) \
+                and si + 1 < len(stages):
+            t0 = time.perf_counter()
+            _select_loop_imaging(run, prev_mesh, prev_maps, st.covered, si)
+            timer.add("material", time.perf_counter() - t0)
         if settings.stop_on_plateau and run.heldout is not None:
             t0 = time.perf_counter()
             stop = _plateau(run, si, prev_mesh, prev_maps, stage_infos)
@@ -808,6 +836,24 @@ def _run_stages(run: _Run, prog: _Progress, init: Mesh, state: dict | None, star
                 _save(run, prog, st, int(stage.iterations), done=False)
                 break
     return st
+
+
+def _select_loop_imaging(run: _Run, mesh: Mesh, maps: dict, covered: np.ndarray, si: int) -> None:
+    """``imaging_loop: select``: the imaging selection on stage ``si``'s model; the later stages
+    optimize under the chosen terms (:class:`recon.optimize.imaging.LoopImaging`)."""
+    settings = run.settings
+    size = int(settings.select_image_size)
+    train_vs, held_vs = run.views.at(size), run.heldout.at(size)
+    if run.cameras is not None:
+        with torch.no_grad():
+            train_vs = dataclasses.replace(
+                train_vs, cameras=tuple(run.cameras.ref.cameras(range(len(train_vs)), train_vs.cameras)))
+    log.info("imaging terms for the loop: selection on stage %d's model (%d held-out views)", si, len(held_vs))
+    params, ev = select_for_loop(settings, mesh, maps, model_from_settings(settings.specular_channels), covered,
+                                 train_vs, held_vs, run.light, run.tone_scale, run.ldr)
+    ev["after_stage"] = si
+    run.imaging.adopt(params, ev)
+    log.info("imaging terms for the loop: %s", ", ".join(ev["chosen"]) or "none (the ideal formation)")
 
 
 def _plateau(run: _Run, si, mesh, maps, stage_infos) -> bool:
@@ -899,6 +945,8 @@ def _save(run: _Run, prog: _Progress, st: _Stage, next_it: int, done: bool) -> N
                  timings=dict(prog.timer.total), done=done)
     if run.cameras is not None:
         state["cameras"] = run.cameras.state()
+    if run.imaging is not None:
+        state["imaging"] = run.imaging.state()
     ckpt.save(run.ckpt_dir, state)
     prog.timer.add("setup", time.perf_counter() - t0)
 

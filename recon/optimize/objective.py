@@ -10,6 +10,7 @@ its name in :data:`TERMS`, its weight in :func:`weights`, its value in :func:`ge
       + w_laplacian * L_lap(V) + w_edge * L_edge(V) + w_normal * L_n(V)  mesh priors
       + w_specular * L_bilateral(a_s; a_d) + w_roughness * TV(r)         material priors
       + w_camera * L_camera(views in the batch)                          camera prior (when refined)
+      + w_imaging * L_exposure                                           exposure prior (imaging_loop)
 
 ``Phi`` is the tone map applied to both sides; ``w_pix`` is 0 on clipped pixels.
 """
@@ -20,7 +21,7 @@ import torch
 
 from recon.optimize import regularizers as reg
 
-TERMS = ("render", "laplacian", "edge", "normal", "specular", "roughness", "camera")
+TERMS = ("render", "laplacian", "edge", "normal", "specular", "roughness", "camera", "imaging")
 
 
 # ---- Image term ----
@@ -66,6 +67,7 @@ def weights(settings) -> dict[str, float]:
         "specular": settings.w_specular if settings.use_material_priors else 0.0,
         "roughness": settings.w_roughness if settings.use_material_priors else 0.0,
         "camera": settings.w_camera,
+        "imaging": settings.w_imaging,
     }
 
 

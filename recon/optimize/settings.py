@@ -154,6 +154,12 @@ class OptimizeSettings:
     linearize stage's linear.json beside the views; ``fit`` / ``identity`` force it).
     ``flash_offset``: the flash's known position in camera coordinates (cameras.json units),
     used in every fit instead of fitting it.
+    ``imaging_loop: select``: the same selection runs on the mesh of stage ``imaging_loop_stage``
+    (the coarse model) and the later stages optimize the shape under the chosen terms (the flash
+    offset and ambient light fixed in the renderer; exposure gains, falloff and tone curve
+    refined with the shape at Adam rate ``imaging_loop_lr``, 0: fixed), so the geometry is no
+    longer fitted to photos the ideal formation cannot explain. ``off``: the ideal formation in
+    the loop (terms, if any, only after it).
     """
 
     resolution: int = 256
@@ -222,6 +228,10 @@ class OptimizeSettings:
     imaging_terms: tuple = ("flash_offset", "exposure", "ambient", "falloff", "tone")
     flash_offset: tuple | None = None
     tone_curve: str = "auto"
+    imaging_loop: str = "off"
+    imaging_loop_stage: int = 0
+    imaging_loop_lr: float = 0.01
+    w_imaging: float = 0.001
 
     def __post_init__(self):
         stages = tuple(
@@ -244,6 +254,12 @@ class OptimizeSettings:
             object.__setattr__(self, "flash_offset", off)
         if self.tone_curve not in ("auto", "fit", "identity"):
             raise ValueError(f"tone_curve must be 'auto', 'fit' or 'identity', got {self.tone_curve!r}")
+        if self.imaging_loop not in ("off", "select"):
+            raise ValueError(f"imaging_loop must be 'off' or 'select', got {self.imaging_loop!r}")
+        if not (isinstance(self.imaging_loop_stage, int) and self.imaging_loop_stage >= 0):
+            raise ValueError(f"imaging_loop_stage must be an integer >= 0, got {self.imaging_loop_stage!r}")
+        if not (np.isfinite(self.imaging_loop_lr) and self.imaging_loop_lr >= 0):
+            raise ValueError(f"imaging_loop_lr must be a finite number >= 0, got {self.imaging_loop_lr!r}")
         choices = {
             "optimizer": OPTIMIZERS,
             "boundary": BOUNDARIES,
@@ -309,7 +325,7 @@ class OptimizeSettings:
     @property
     def holds_out(self) -> bool:
         """Whether views are held out of the optimization (for selection or the plateau test)."""
-        return bool(self.select_material or self.stop_on_plateau or self.select_imaging)
+        return bool(self.select_material or self.stop_on_plateau or self.select_imaging or self.imaging_loop != "off")
 
     def selection_settings(self):
         return SelectionSettings(
