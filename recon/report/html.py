@@ -65,6 +65,7 @@ class Page:
     material_selection: dict | None = None  # summary.json's evidence of the held-out model choice
     camera_refinement: dict | None = None  # metrics.json's camera_refinement (issue 17)
     imaging_selection: dict | None = None  # the camera's imaging terms chosen the same way
+    imaging_loop: dict | None = None  # the terms chosen on the coarse model, used in the shape's loop
     cards: list = field(default_factory=list)  # (label, value string)
     viewer_head: str = ""
     viewer_body: str = ""
@@ -154,6 +155,10 @@ def render_page(p: Page) -> str:
         parts.append(_selection_section(p.material_selection))
     if isinstance(p.camera_refinement, dict) and p.camera_refinement.get("mode"):
         parts.append(_camera_section(p.camera_refinement))
+    if isinstance(p.imaging_loop, dict) and p.imaging_loop.get("candidates"):
+        parts.append(_imaging_section(
+            p.imaging_loop, f"Camera imaging in the shape's optimization: terms chosen on stage "
+                            f"{p.imaging_loop.get('after_stage')}'s model"))
     if isinstance(p.imaging_selection, dict) and p.imaging_selection.get("candidates"):
         parts.append(_imaging_section(p.imaging_selection))
 
@@ -223,7 +228,7 @@ def _camera_section(cam: dict) -> str:
     return "".join(out)
 
 
-def _imaging_section(sel: dict) -> str:
+def _imaging_section(sel: dict, title: str = "Camera imaging: terms chosen on held-out views") -> str:
     """The camera's imaging terms tried on held-out views (recon.optimize.imaging), the decision
     and the fitted values."""
     rows = []
@@ -236,7 +241,7 @@ def _imaging_section(sel: dict) -> str:
                      "" if gain is None else gain, "" if se is None else se, decision))
     chosen = ", ".join(sel.get("chosen") or []) or "none (the ideal image formation)"
     values = {k: v for k, v in (sel.get("values") or {}).items() if k in ("flash_offset", "ambient", "falloff")}
-    return ("<h2>Camera imaging: terms chosen on held-out views</h2>"
+    return (f"<h2>{html.escape(title)}</h2>"
             f"<p>Kept: <b>{html.escape(chosen)}</b>. {html.escape(str(sel.get('criterion', '')))}; "
             f"error = {html.escape(str(sel.get('metric', '')))}. "
             f"Fitted: {html.escape(json.dumps(values))}</p>"

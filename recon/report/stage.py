@@ -256,6 +256,14 @@ def make_report(
         metrics["imaging_selection"] = {k: imaging.get(k) for k in (
             "chosen", "criterion", "metric", "candidates_tried", "flash_offset_given", "values", "candidates",
             "tone_curve", "seconds")}
+    loop = summary.get("imaging_loop") if isinstance(summary.get("imaging_loop"), dict) else None
+    loop_ev = loop.get("evidence") if loop is not None and isinstance(loop.get("evidence"), dict) else None
+    if loop_ev is not None:  # the imaging terms the shape was optimized under (imaging_loop: select)
+        metrics["imaging_loop"] = {
+            "chosen": loop.get("chosen"), "after_stage": loop_ev.get("after_stage"),
+            "values_after_loop": loop.get("values_after_loop"),
+            "selection": {k: loop_ev.get(k) for k in ("criterion", "metric", "candidates_tried", "flash_offset_given",
+                                                      "values", "candidates", "tone_curve", "seconds")}}
     opt_stages = summary.get("stages")
     opt_stages = [st for st in opt_stages if isinstance(st, dict)] if isinstance(opt_stages, list) else []
     metrics["optimize"] = {
@@ -272,7 +280,7 @@ def make_report(
     metrics["settings"] = dataclasses.asdict(settings)
 
     page = page_html.Page(capture=capture, preset=preset, material_model=material, material_selection=selection,
-                          camera_refinement=cameras_info, imaging_selection=imaging)
+                          camera_refinement=cameras_info, imaging_selection=imaging, imaging_loop=loop_ev)
     if metrics["asset"].get("scale_warning"):
         page.notes.append(f"Asset scale: {metrics['asset']['scale_source']}.")
         log.warning("the asset's scale is unknown: %s", metrics["asset"]["scale_source"])

@@ -15,3 +15,13 @@ def test_imaging_section_lists_kept_terms_with_gain_and_se():
     assert "Camera imaging" in page and "Kept: <b>flash_offset</b>" in page
     assert "0.0175" in page and "0.0021" in page and "rejected" in page and "kept" in page
     assert "Camera imaging" not in render_page(Page(capture="c", preset="draft"))
+
+
+def test_imaging_loop_section_names_the_stage_and_terms():
+    ev = {"after_stage": 0, "chosen": ["exposure"], "criterion": "keep when gain > 2 SE", "metric": "mean |Phi|",
+          "values": {"terms": ["exposure"], "exposure_gains": [0.9, 1.1]},
+          "candidates": [{"step": "ideal", "terms": [], "heldout_error": 0.1, "gain": None, "se": None},
+                         {"step": "exposure", "terms": ["exposure"], "heldout_error": 0.07, "gain": 0.03,
+                          "se": 0.002, "accepted": True}]}
+    page = render_page(Page(capture="c", preset="balanced", imaging_loop=ev))
+    assert "in the shape&#x27;s optimization" in page and "stage 0" in page and "Kept: <b>exposure</b>" in page
