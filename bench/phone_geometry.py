@@ -104,9 +104,9 @@ def measure(res: Path) -> dict:
     m = json.loads((res / "report" / "metrics.json").read_text())
     s = json.loads((res / "optimize" / "summary.json").read_text())
     loop = s.get("imaging_loop") or {}
-    geo = m.get("geometry", m)
-    out = {"accuracy": geo.get("accuracy"), "completeness": geo.get("completeness"),
-           "heldout_rmse_srgb": (m.get("images") or {}).get("heldout_rmse_srgb", m.get("heldout_rmse_srgb")),
+    mm = m["metrics"]
+    out = {"accuracy": mm.get("accuracy"), "completeness": mm.get("completeness"),
+           "image_rmse": mm.get("image_rmse"), "textures": {k: v for k, v in mm.items() if isinstance(v, dict)},
            "optimize_seconds": s.get("wall_seconds"),
            "loop_terms": loop.get("chosen"),
            "loop_values": loop.get("values_after_loop"),
@@ -116,14 +116,16 @@ def measure(res: Path) -> dict:
 
 def table(results: dict) -> str:
     ideal = results["ideal"].get("accuracy")
-    rows = ["| run | terms in the loop | accuracy | ratio to ideal | completeness | held-out sRGB RMSE | optimize seconds |",
-            "|---|---|---|---|---|---|---|"]
+    rows = ["| run | terms in the loop | accuracy | ratio to ideal | completeness | image RMSE (sRGB) | diffuse texture RMSE | optimize seconds |",
+            "|---|---|---|---|---|---|---|---|"]
     for run, r in results.items():
         acc = r.get("accuracy")
         ratio = f"{acc / ideal:.2f}" if acc and ideal else "-"
         terms = ", ".join(r.get("loop_terms") or []) or ("-" if run != "phone_loop_select" else "none")
         rows.append(f"| {run} | {terms} | {acc:.5f} | {ratio} | {r.get('completeness', float('nan')):.5f} | "
-                    f"{r.get('heldout_rmse_srgb') or float('nan'):.4f} | {r.get('optimize_seconds') or float('nan'):.0f} |")
+                    f"{r.get('image_rmse') or float('nan'):.4f} | "
+                    f"{((r.get('textures') or {}).get('texture_rmse') or {}).get('diffuse', float('nan')):.4f} | "
+                    f"{r.get('optimize_seconds') or float('nan'):.0f} |")
     return "\n".join(rows)
 
 
