@@ -716,3 +716,18 @@ def select_for_loop(settings, mesh, maps: dict, material: MaterialModel, covered
     ev["tone_curve"] = {"setting": settings.tone_curve, "photos_are_ldr": ldr, "tried": tone}
     keep = bool(fit.model.terms) or settings.flash_offset is not None
     return (fit.params if keep else None), ev
+
+
+def refit_under(params: ImagingParams, material: MaterialModel, mesh, maps: dict, covered: np.ndarray,
+                train_set: ViewSet, light: float, tone_scale: float, s: SelectionSettings, spp: int = 4,
+                seed: int = 0) -> ImagingFit:
+    """The material maps of ``material`` refitted on the final mesh under the imaging terms the
+    loop used (``params``: their values the start, refined with the maps), so that the maps the
+    asset carries are those of the model the shape was fitted with (the material selection
+    before it compares models under the ideal formation)."""
+    gb = build_gbuffer(mesh, list(train_set.cameras), spp, seed)
+    prob = ImagingProblem(gb, train_set, s.tone_map, tone_scale, s.tile)
+    lo, hi = mesh.bbox()
+    offset = None if params.offset_given is None else params.offset_given.numpy()
+    return fit_imaging(params.model, material, prob, maps, covered, light, s, ImagingSettings(), params,
+                       float(np.max(hi - lo)), tone_scale, offset)

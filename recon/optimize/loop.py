@@ -52,7 +52,8 @@ from recon.optimize.camera_refine import CameraRefinement, scene_extent
 from recon.optimize import regularizers as reg
 from recon.optimize.guard import SurfaceGuard, self_intersecting_faces
 from recon.optimize.largesteps import AdamUniform, LargeSteps
-from recon.optimize.imaging import ImagingSettings, LoopImaging, capture_is_ldr, run_imaging_selection, select_for_loop
+from recon.optimize.imaging import (ImagingSettings, LoopImaging, capture_is_ldr, refit_under, run_imaging_selection,
+                                    select_for_loop)
 from recon.optimize.material import compare, heldout_error, model_from_settings, select_material
 from recon.optimize.params import TexturePyramid, albedo_param, constant_map, roughness_param
 from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, topology_report, unwrap
@@ -582,7 +583,8 @@ def optimize_capture(
     model = model_from_settings(settings.specular_channels)
     selection = None
     train_vs = held_vs = None  # the views at the selections' size with the final model's cameras
-    if heldout is not None and (settings.select_material or settings.select_imaging):
+    loop_imaging = run.imaging is not None and run.imaging.active
+    if heldout is not None and (settings.select_material or settings.select_imaging or loop_imaging):
         size = int(settings.select_image_size)
         train_vs, held_vs = views.at(size), heldout.at(size)
         if run.cameras is not None:
@@ -600,6 +602,14 @@ def optimize_capture(
         final_maps, model = fit.maps, fit.model
         timer.add("material", time.perf_counter() - t0)
         log.info("material model: %s", model.label())
+    if loop_imaging and not settings.select_imaging:
+        t0 = time.perf_counter()
+        refit = refit_under(run.imaging.params, model, final, final_maps, st.covered, train_vs, light, tone_scale,
+                            settings.selection_settings(), spp=int(settings.select_spp), seed=int(settings.seed) + 29)
+        final_maps = refit.material.maps
+        timer.add("material", time.perf_counter() - t0)
+        log.info("maps refitted under the loop's imaging terms (%s): %.1f s", ", ".join(run.imaging.params.model.terms)
+                 or "flash offset given", time.perf_counter() - t0)
     imaging = None
     if settings.select_imaging and heldout is not None:
         t0 = time.perf_counter()
