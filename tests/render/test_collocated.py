@@ -472,22 +472,24 @@ def test_projective_mode_at_any_scene_scale(mi, dr, s):
 
 
 # ---------------------------------------------------------------------- torch bridge
-def test_render_torch_matches_drjit_gradients(mi, dr, scene, weights):
+@pytest.mark.parametrize("lit", ["collocated", "flash_offset_ambient"])
+def test_render_torch_matches_drjit_gradients(mi, dr, scene, weights, lit):
     import torch
 
     sc = scene
+    lighting = {} if lit == "collocated" else {"flash_offset": np.array([0.1, -0.05, 0.0]), "ambient": 0.2}
     r = CollocatedRenderer(sc["f"], sc["t"], sc["ft"], RenderSettings(spp=4, boundary="edge"))
-    ref = _ad_grads(mi, dr, r, sc, weights, seed=9)
+    ref = _ad_grads(mi, dr, r, sc, weights, seed=9, **lighting)
     ts = [torch.tensor(np.asarray(a, np.float32), requires_grad=True) for a in
           (sc["v"], sc["diffuse"], sc["specular"], sc["roughness"])]
-    img = r.render_torch(*ts, [sc["cam"]], LIGHT, 9)
+    img = r.render_torch(*ts, [sc["cam"]], LIGHT, 9, **lighting)
     assert img.shape == (1, RES, RES, 3) and img.dtype == torch.float32
     (img[0] * torch.from_numpy(weights)).sum().backward()
     for t, g in zip(ts, ref, strict=True):
         assert t.grad is not None and t.grad.shape == t.shape
         np.testing.assert_allclose(t.grad.numpy(), g, rtol=1e-4, atol=1e-6 * np.abs(g).max())
     with torch.no_grad():
-        out = r.render_torch(*ts, [sc["cam"]], LIGHT, 9)
+        out = r.render_torch(*ts, [sc["cam"]], LIGHT, 9, **lighting)
     assert not out.requires_grad
     np.testing.assert_allclose(out.numpy(), img.detach().numpy(), rtol=1e-6)
 
