@@ -162,14 +162,65 @@ def rescale_model(rec, shape, up: int) -> None:
 
 def _drop_weak_views(rec, min_points: int) -> dict[str, int]:
     """Deregister views posed from fewer than ``min_points`` 3D points (global mapping places
-    views by rotation averaging even when no point supports them); returns stem -> points."""
+    views by rotation averaging even when no point supports them), then views not anchored
+    to the model (:func:`anchored_views`); returns stem -> the points that tie the view to
+    the model (its own 3D points for the first kind)."""
     weak = {}
     for i in list(rec.reg_image_ids()):
         im = rec.images[i]
         if im.num_points3D < min_points:
             weak[Path(im.name).stem] = int(im.num_points3D)
             rec.deregister_frame(im.frame_id)
+    keep, tied = anchored_views(rec, min_points)
+    for i in list(rec.reg_image_ids()):
+        if i not in keep:
+            weak[Path(rec.images[i].name).stem] = int(tied[i])
+            rec.deregister_frame(rec.images[i].frame_id)
     return weak
+
+
+def anchored_views(rec, min_points: int) -> tuple[set[int], dict[int, int]]:
+    """The registered views tied to the model's main part, and per view the 3D points it
+    shares with it.
+
+    A view is anchored when at least ``min_points`` of its 3D points are also seen by other
+    anchored views; the set grows from each view in turn (a fixpoint) and the largest wins.
+    A group of views whose points are seen mostly among themselves is not: its position and
+    scale relative to the rest rest on a handful of points. On a 256x192 orbit (32 views)
+    global mapping once placed two such views (16 points shared with each other, 6 and 3
+    with the rest) 9x too far from the object along their viewing rays; every view had a
+    0.15 px error and the silhouette consistency was 0.98 (a view too far away still sees
+    the points inside its mask), but the similarity of the camera centres was 21 degrees
+    off the truth.
+    """
+    ids = [int(i) for i in rec.reg_image_ids()]
+    views_of = {}  # point -> the registered views that see it
+    for pid in rec.point3D_ids():
+        views_of[pid] = {int(e.image_id) for e in rec.point3D(pid).track.elements}
+    points_of = {i: [] for i in ids}
+    for pid, vs in views_of.items():
+        for v in vs:
+            if v in points_of:
+                points_of[v].append(pid)
+
+    def tied_to(i, group):
+        return sum(1 for pid in points_of[i] if any(v != i and v in group for v in views_of[pid]))
+
+    best: set[int] = set()
+    for seed in sorted(ids, key=lambda i: -len(points_of[i])):
+        if seed in best or len(points_of[seed]) < min_points:
+            continue
+        group = {seed}
+        grown = True
+        while grown:
+            new = {i for i in ids if i not in group and tied_to(i, group) >= min_points}
+            grown = bool(new)
+            group |= new
+        if len(group) > len(best):
+            best = group
+        if len(best) > len(ids) // 2:  # no other group can be larger
+            break
+    return best, {i: tied_to(i, best - {i}) for i in ids}
 
 
 def refine(rec, settings: PoseSettings, shape, f_prior: float | None = None):
