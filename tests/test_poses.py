@@ -17,7 +17,8 @@ from recon.io.images import read_exr, read_ldr, read_mask, srgb_to_linear, write
 from recon.io.mesh import Mesh, read_obj, write_ply
 from recon.poses.frame import rotate_cameras
 from recon.poses.inputs import image_names
-from recon.poses.mapping import _drop_weak_views, anchored_views, mapper_sequence, refine, rescale_model
+from recon.poses.mapping import (_drop_weak_views, anchored_views, focal_sigma, focal_with_prior, mapper_sequence,
+                                 refine, rescale_model)
 from recon.poses.undistort import remap, undistort_maps
 
 
@@ -436,6 +437,55 @@ def test_views_not_anchored_to_the_model_are_dropped(synthetic_sfm):
     stems = {Path(rec.images[i].name).stem for i in pair}
     assert set(dropped) == stems and all(v <= 4 for v in dropped.values()), dropped
     assert rec.num_reg_images() == n - 2
+
+
+def test_focal_length_with_a_prior(synthetic_sfm):
+    """With a focal length prior (EXIF) the final adjustment holds the focal length at the prior
+    (fixed), at the prior and the adjustment's estimate weighted by their variances (auto), or
+    lets it free (free, the prior only started it). Against the true focal length: the
+    adjustment's own standard deviation is of the size of its error, and an exact prior pulls
+    auto towards the truth."""
+    import pycolmap
+
+    capture, results, _ = synthetic_sfm
+    f_true = load_cameras(capture / "gt" / "cameras.json").frames[0].K[0, 0]
+    rec = pycolmap.Reconstruction(results / "poses" / "sparse")
+    cam = next(iter(rec.cameras.values()))
+    shape = (cam.height, cam.width)
+
+    def focal(mode, prior, **kw):
+        r, info = refine(pycolmap.Reconstruction(rec), rp.PoseSettings(num_threads=1, focal_refine=mode, **kw),
+                         shape, prior)
+        f = next(iter(r.cameras.values())).mean_focal_length()
+        assert np.isfinite(f) and info["reprojection_error_after_px"] < 1.0, info
+        return f, info
+
+    f_free, info = focal("free", f_true)
+    assert "focal" not in info
+    sigma = focal_sigma(rec, rp.PoseSettings(num_threads=1))
+    err = abs(f_free / f_true - 1)
+    print(f"\nfree focal {f_free:.2f} px (true {f_true:.2f}: {100 * err:.2f} %), sigma {100 * sigma:.2f} %")  # noqa: T201
+    assert 1e-4 < sigma < 0.05 and err < 4 * sigma
+    f_fixed, info = focal("fixed", 1.03 * f_true)  # a prior 3 % long is held
+    assert f_fixed == pytest.approx(1.03 * f_true, rel=1e-12) and info["focal"]["mode"] == "fixed"
+    f_auto, info = focal("auto", f_true)
+    s_ba, s_p = info["focal"]["adjusted_sigma"], info["focal"]["prior_sigma"]
+    s_ba = 2.0 * s_ba  # focal_sigma_scale
+    w = s_p**2 / (s_p**2 + s_ba**2)  # the adjustment's weight
+    assert f_auto == pytest.approx(w * info["focal"]["adjusted_px"] + (1 - w) * f_true, rel=1e-9)
+    assert abs(f_auto - f_true) < abs(f_free - f_true) or err < 1e-4
+    # a prior trusted 100x more is (nearly) held; one trusted 100x less (nearly) ignored
+    f_tight, _ = focal("auto", 1.03 * f_true, focal_prior_sigma=sigma / 100)
+    f_loose, _ = focal("auto", 1.03 * f_true, focal_prior_sigma=min(0.99, sigma * 200))
+    assert f_tight == pytest.approx(1.03 * f_true, rel=1e-3) and f_loose == pytest.approx(f_free, rel=2e-3)
+    # no prior: the focal length is the adjustment's whatever the mode
+    f_none, info = focal("fixed", None)
+    assert "focal" not in info and f_none == pytest.approx(f_free, rel=1e-9)
+    for bad in ({"focal_refine": "hold"}, {"focal_prior_sigma": 0.0}, {"focal_prior_sigma": float("nan")},
+                {"focal_sigma_scale": 0}, {"focal_sigma_scale": float("inf")}):
+        with pytest.raises(ValueError):
+            rp.PoseSettings(**bad)
+    assert focal_with_prior(rec, rp.PoseSettings(focal_refine="fixed"), 123.0)["focal_px"] == 123.0
 
 
 def test_sfm_on_real_photos(shared_data, tmp_path):
