@@ -19,7 +19,7 @@ from recon.poses.frame import rotate_cameras
 from recon.poses.inputs import image_names
 from recon.poses.mapping import (_drop_weak_views, anchored_views, focal_sigma, focal_with_prior, mapper_sequence,
                                  refine, rescale_model)
-from recon.poses.undistort import remap, undistort_maps
+from recon.poses.undistort import distortion_shift, pinhole_camera, remap, undistort_maps
 
 
 def _leftovers(folder):
@@ -196,6 +196,35 @@ def test_undistortion_matches_the_pinhole_image():
     err = np.abs(und[inner] - expected[inner])
     assert err.max() < 0.02, err.max()  # bilinear resampling only; half a pixel off would be ~0.1
     assert pinhole.model_name == "PINHOLE" and pinhole.focal_length_x == pinhole.focal_length_y
+
+
+def test_no_distortion_keeps_the_photo_size():
+    """A distortion that moves no pixel by more than 0.01 px keeps the photo's size and camera
+    (pycolmap.undistort_camera cropped 192 x 144 to 191 x 143 with k = 0 and to 190 x 142 with
+    k = 1e-12: a knife edge between SfM runs); the views pass through unchanged. A real
+    distortion still gets COLMAP's cropped pinhole camera."""
+    import pycolmap
+
+    cam = pycolmap.Camera.create_from_model_name(1, "SIMPLE_RADIAL", 258.7, 192, 144)
+    rng = np.random.default_rng(0)
+    img = rng.random((144, 192, 3)).astype(np.float32)
+    for k in (0.0, 1e-12, -1e-12, 1e-6):
+        cam.params = [258.72245809, 96.0, 72.0, k]
+        pin = pinhole_camera(cam, "SIMPLE_RADIAL")
+        assert (pin.width, pin.height) == (192, 144), k
+        np.testing.assert_allclose(pin.params, [258.72245809, 258.72245809, 96.0, 72.0])
+        assert distortion_shift(cam) < 1e-4
+        np.testing.assert_allclose(remap(img, undistort_maps(cam, pin)), img, atol=1e-3)
+    for k in (0.001, 0.15, -0.3):
+        cam.params = [258.72245809, 96.0, 72.0, k]
+        pin = pinhole_camera(cam, "SIMPLE_RADIAL")
+        ref = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), cam)
+        assert distortion_shift(cam) > 0.02 and (pin.width, pin.height) == (ref.width, ref.height) != (192, 144)
+    cam.params = [258.72245809, 96.0, 72.0, -58.0]  # a drifted fit (seen on the demo): large, not NaN
+    assert distortion_shift(cam) > 1.0
+    cam.params = [258.72245809, 95.0, 72.0, 0.0]  # an off-centre principal point is kept
+    pin = pinhole_camera(cam, "SIMPLE_RADIAL")
+    assert (pin.width, pin.height) == (192, 144) and pin.principal_point_x == 95.0
 
 
 def test_object_frame_centers_scales_and_levels():
