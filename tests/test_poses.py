@@ -504,9 +504,12 @@ def test_focal_length_with_a_prior(synthetic_sfm):
     assert f_auto == pytest.approx(w * info["focal"]["adjusted_px"] + (1 - w) * f_true, rel=1e-9)
     assert abs(f_auto - f_true) < abs(f_free - f_true) or err < 1e-4
     # a prior trusted 100x more is (nearly) held; one trusted 100x less (nearly) ignored
-    f_tight, _ = focal("auto", 1.03 * f_true, focal_prior_sigma=sigma / 100)
-    f_loose, _ = focal("auto", 1.03 * f_true, focal_prior_sigma=min(0.99, sigma * 200))
-    assert f_tight == pytest.approx(1.03 * f_true, rel=1e-3) and f_loose == pytest.approx(f_free, rel=2e-3)
+    f_tight, _ = focal("auto", 1.01 * f_true, focal_prior_sigma=sigma / 100)
+    f_loose, _ = focal("auto", 1.01 * f_true, focal_prior_sigma=min(0.99, sigma * 200))
+    assert f_tight == pytest.approx(1.01 * f_true, rel=1e-3) and f_loose == pytest.approx(f_free, rel=2e-3)
+    # a prior the photos contradict (30 % long: > 5 combined sigma) is not used in auto
+    f_far, info = focal("auto", 1.3 * f_true)
+    assert f_far == pytest.approx(f_free, rel=1e-6) and info["focal"]["disagreement_sigma"] > 5
     # no prior: the focal length is the adjustment's whatever the mode
     f_none, info = focal("fixed", None)
     assert "focal" not in info and f_none == pytest.approx(f_free, rel=1e-9)

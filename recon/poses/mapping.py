@@ -354,8 +354,9 @@ def focal_with_prior(rec, settings: PoseSettings, f_prior: float) -> dict:
     adjustment where it can. On blob orbits (40 degrees field of view, no prior) the
     adjustment's focal length was short by 1.9 % at 192x144 (32 views; sigma 0.90 %), 1.1 %
     at 256x192 (32 views; 0.46 %) and 0.63 % at 256x256 (40 views; 0.34 %): 1.9-2.4 sigma,
-    always short, hence ``focal_sigma_scale`` 2. Without an estimate of the variance (the cost
-    did not rise), the prior.
+    always short, hence ``focal_sigma_scale`` 2. A prior more than 5 combined standard
+    deviations from the estimate contradicts the photos and is not used. Without an estimate
+    of the variance (the cost did not rise), the prior.
     """
     f_ba = float(next(iter(rec.cameras.values())).mean_focal_length())
     out = {"mode": settings.focal_refine, "prior_px": float(f_prior), "prior_sigma": settings.focal_prior_sigma,
@@ -365,9 +366,15 @@ def focal_with_prior(rec, settings: PoseSettings, f_prior: float) -> dict:
         sigma = focal_sigma(rec, settings)
         out["adjusted_sigma"] = sigma
         if sigma is not None:
-            w_ba = 1.0 / (settings.focal_sigma_scale * sigma) ** 2
-            w_prior = 1.0 / settings.focal_prior_sigma**2
-            f = (w_ba * f_ba + w_prior * f_prior) / (w_ba + w_prior)
+            s_ba, s_prior = settings.focal_sigma_scale * sigma, settings.focal_prior_sigma
+            z = abs(f_ba / f_prior - 1.0) / float(np.hypot(s_ba, s_prior))
+            out["disagreement_sigma"] = z
+            if z > 5.0:  # the photos contradict the prior (a digital zoom, a crop, a wrong tag)
+                f = f_ba
+                log.warning("focal length: the adjustment's %.2f px and the prior %.2f px differ by %.1f standard "
+                            "deviations: the prior is not used (poses.focal_refine: fixed holds it)", f_ba, f_prior, z)
+            else:
+                f = (f_ba / s_ba**2 + f_prior / s_prior**2) / (1.0 / s_ba**2 + 1.0 / s_prior**2)
     out["focal_px"] = f
     log.info("focal length: %.2f px (prior %.2f px +- %.1f%%, adjusted %.2f px +- %s; %s)", f, f_prior,
              100 * settings.focal_prior_sigma, f_ba,
