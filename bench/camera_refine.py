@@ -155,12 +155,12 @@ def sfm_inputs(cap: Path, work: Path, lin: Path, poses_settings: dict | None = N
 
 
 def one(name: str, cameras_json: Path, images, masks, settings, gt_mesh, gt_cams, size, work: Path,
-        evaluate_only: bool = False) -> dict:
+        evaluate_only: bool = False, reuse: bool = False) -> dict:
     from recon.init_mesh import run_init_mesh
 
     d = work / name
     init = d / "init"
-    if evaluate_only:  # the finished run's outputs, measured again
+    if evaluate_only or (reuse and (d / "optimize" / "summary.json").is_file()):  # the finished run, measured again
         summary = json.loads((d / "optimize" / "summary.json").read_text())
         wall = summary["wall_seconds"]
     else:
@@ -229,9 +229,13 @@ def main(argv=None) -> int:
     p.add_argument("--set", action="append", default=[], help="key=value (YAML) overriding the preset's optimize section")
     p.add_argument("--levels", nargs="*", default=list(LEVELS), choices=list(LEVELS))
     p.add_argument("--sfm", action=argparse.BooleanOptionalAction, default=True, help="also the SfM cameras")
+    p.add_argument("--sfm-views-exact", action="store_true",
+                   help="also the exact cameras of only the views SfM registered (row exact-<sfm row>-views): "
+                        "what the unregistered views cost, apart from the cameras' errors")
     p.add_argument("--poses-set", action="append", default=[],
                    help="key=value (YAML) of the poses settings for the SfM row (its name and folder: sfm-key=value)")
     p.add_argument("--seed", type=int, default=1, help="seed of the perturbations")
+    p.add_argument("--reuse", action="store_true", help="measure the finished runs in --out again, run the others")
     p.add_argument("--evaluate-only", action="store_true",
                    help="measure the runs already in --out again (no optimization; e.g. after a metric was added)")
     args = p.parse_args(argv)
@@ -266,15 +270,23 @@ def main(argv=None) -> int:
         cj = d / "cameras.json"
         if not cj.is_file():
             save_cameras(cj, perturb(gt_cams, deg, pct, size, args.seed))
-        rows.append(one(name, cj, images, masks, settings, gt_mesh, gt_cams, size, args.out, args.evaluate_only))
+        rows.append(one(name, cj, images, masks, settings, gt_mesh, gt_cams, size, args.out, args.evaluate_only, args.reuse))
     if args.sfm:
         poses_settings = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.poses_set)}
         name = "-".join(["sfm"] + args.poses_set)
         lin = lin or linearized(cap, args.out / "linear")
         cj, imgs, msks, secs = sfm_inputs(cap, args.out / name, lin, poses_settings)
-        row = one(name, cj, imgs, msks, settings, gt_mesh, gt_cams, size, args.out, args.evaluate_only)
+        row = one(name, cj, imgs, msks, settings, gt_mesh, gt_cams, size, args.out, args.evaluate_only, args.reuse)
         row["sfm_seconds"] = secs
         rows.append(row)
+        if args.sfm_views_exact:
+            stems = {c.stem for c in load_cameras(cj).frames}
+            keep = [k for k, c in enumerate(gt_cams.frames) if c.stem in stems]
+            d = args.out / f"exact-{name}-views"
+            d.mkdir(parents=True, exist_ok=True)
+            save_cameras(d / "cameras.json", CameraSet(tuple(gt_cams.frames[k] for k in keep), gt_cams.light_intensity))
+            rows.append(one(d.name, d / "cameras.json", [images[k] for k in keep], [masks[k] for k in keep], settings,
+                            gt_mesh, gt_cams, size, args.out, args.evaluate_only, args.reuse))
     exact = next((r["accuracy_without"]["accuracy"] for r in rows if r["name"] == "exact"), None)
     result = {"capture": str(cap), "preset": args.preset, "overrides": args.set, "object_size": size,
               "exact_accuracy": exact, "rows": rows}
