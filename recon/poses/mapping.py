@@ -353,8 +353,9 @@ def focal_with_prior(rec, settings: PoseSettings, f_prior: float) -> dict:
     error and an object scaled by the same factor then differ only by perspective), the
     adjustment where it can. On blob orbits (40 degrees field of view, no prior) the
     adjustment's focal length was short by 1.9 % at 192x144 (32 views; sigma 0.90 %), 1.1 %
-    at 256x192 (32 views; 0.46 %) and 0.63 % at 256x256 (40 views; 0.34 %): 1.9-2.4 sigma,
-    always short, hence ``focal_sigma_scale`` 2. A prior more than 5 combined standard
+    at 256x192 (32 views; 0.46 %), 0.63 % at 256x256 (40 views; 0.34 %) and 3.4 % on 192x144
+    JPEGs (0.89 %): 1.9-3.8 sigma, always short (docs/camera_refine.md), hence
+    ``focal_sigma_scale`` 2. A prior more than 5 combined standard
     deviations from the estimate contradicts the photos and is not used. Without an estimate
     of the variance (the cost did not rise), the prior.
     """
