@@ -84,8 +84,8 @@ def camera_errors(est: list[Camera], true: CameraSet, size: float, points: np.nd
     sim = align_cameras(est_set, true)
     pe = pose_errors(est_set, true, sim)
     t = true.by_stem()
-    # in pixels: the poses stage's undistorted views crop the border (191 x 143 of 192 x 144
-    # here), keeping the pixel pitch
+    # relative: the poses stage's undistorted views of a fitted distortion crop the border,
+    # keeping the pixel pitch
     focal = [abs(c.K[0, 0] / t[c.stem].K[0, 0] - 1) for c in est]
     x_est = (sim.rotation.T @ (points - sim.translation).T).T / sim.scale  # true frame -> estimated
     px = [float(np.linalg.norm(c.project(x_est)[0] - t[c.stem].project(points)[0], axis=1).mean()) for c in est]
@@ -119,18 +119,26 @@ def accuracy(mesh: Mesh, cams: list[Camera], gt_mesh: Mesh, gt_cams: CameraSet) 
             "scale_fitted": float(best), "accuracy_scale_fitted": fitted["accuracy"]}
 
 
-def sfm_inputs(cap: Path, work: Path) -> tuple[Path, list[Path], list[Path], float]:
-    """Linearize the capture and run the poses stage without its cameras (SfM)."""
+def linearized(cap: Path, lin: Path) -> Path:
+    """The capture's photos through the linearize stage (``lin``: its folder)."""
     from recon.linearize import linearize_capture
-    from recon.poses import PoseSettings, run_poses
 
-    lin = work / "linear"
     if not (lin / "linear.json").is_file():
         linearize_capture(cap, lin)
+    return lin
+
+
+def sfm_inputs(cap: Path, work: Path, lin: Path, poses_settings: dict | None = None
+               ) -> tuple[Path, list[Path], list[Path], float]:
+    """Run the poses stage on the linearized capture without its cameras (SfM), with the
+    default poses settings updated by ``poses_settings``."""
+    from recon.poses import PoseSettings, run_poses
+
     poses = work / "poses"
     t0 = time.perf_counter()
     if not (poses / "cameras.json").is_file():
-        run_poses(lin, poses, PoseSettings(), masks_dir=cap / "masks", linear_json=lin / "linear.json")
+        run_poses(lin, poses, PoseSettings(**(poses_settings or {})), masks_dir=cap / "masks",
+                  linear_json=lin / "linear.json")
     secs = time.perf_counter() - t0
     cams = load_cameras(poses / "cameras.json")
     # SfM's frame has its own scale s (true = s * sfm): the collocated light of the true
@@ -147,12 +155,12 @@ def sfm_inputs(cap: Path, work: Path) -> tuple[Path, list[Path], list[Path], flo
 
 
 def one(name: str, cameras_json: Path, images, masks, settings, gt_mesh, gt_cams, size, work: Path,
-        evaluate_only: bool = False) -> dict:
+        evaluate_only: bool = False, reuse: bool = False) -> dict:
     from recon.init_mesh import run_init_mesh
 
     d = work / name
     init = d / "init"
-    if evaluate_only:  # the finished run's outputs, measured again
+    if evaluate_only or (reuse and (d / "optimize" / "summary.json").is_file()):  # the finished run, measured again
         summary = json.loads((d / "optimize" / "summary.json").read_text())
         wall = summary["wall_seconds"]
     else:
@@ -221,7 +229,13 @@ def main(argv=None) -> int:
     p.add_argument("--set", action="append", default=[], help="key=value (YAML) overriding the preset's optimize section")
     p.add_argument("--levels", nargs="*", default=list(LEVELS), choices=list(LEVELS))
     p.add_argument("--sfm", action=argparse.BooleanOptionalAction, default=True, help="also the SfM cameras")
+    p.add_argument("--sfm-views-exact", action="store_true",
+                   help="also the exact cameras of only the views SfM registered (row exact-<sfm row>-views): "
+                        "what the unregistered views cost, apart from the cameras' errors")
+    p.add_argument("--poses-set", action="append", default=[],
+                   help="key=value (YAML) of the poses settings for the SfM row (its name and folder: sfm-key=value)")
     p.add_argument("--seed", type=int, default=1, help="seed of the perturbations")
+    p.add_argument("--reuse", action="store_true", help="measure the finished runs in --out again, run the others")
     p.add_argument("--evaluate-only", action="store_true",
                    help="measure the runs already in --out again (no optimization; e.g. after a metric was added)")
     args = p.parse_args(argv)
@@ -242,6 +256,10 @@ def main(argv=None) -> int:
     size = float(np.max(hi - lo))
     args.out.mkdir(parents=True, exist_ok=True)
     images = [cap / c.image for c in gt_cams.frames]
+    lin = None
+    if any(Path(i).suffix.lower() != ".exr" for i in images):  # JPEG/PNG/DNG photos: their linear EXRs
+        lin = linearized(cap, args.out / "linear")
+        images = [lin / f"{c.stem}.exr" for c in gt_cams.frames]
     masks = [cap / "masks" / f"{c.stem}.png" for c in gt_cams.frames]
 
     rows = []
@@ -252,12 +270,23 @@ def main(argv=None) -> int:
         cj = d / "cameras.json"
         if not cj.is_file():
             save_cameras(cj, perturb(gt_cams, deg, pct, size, args.seed))
-        rows.append(one(name, cj, images, masks, settings, gt_mesh, gt_cams, size, args.out, args.evaluate_only))
+        rows.append(one(name, cj, images, masks, settings, gt_mesh, gt_cams, size, args.out, args.evaluate_only, args.reuse))
     if args.sfm:
-        cj, imgs, msks, secs = sfm_inputs(cap, args.out / "sfm")
-        row = one("sfm", cj, imgs, msks, settings, gt_mesh, gt_cams, size, args.out, args.evaluate_only)
+        poses_settings = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.poses_set)}
+        name = "-".join(["sfm"] + args.poses_set)
+        lin = lin or linearized(cap, args.out / "linear")
+        cj, imgs, msks, secs = sfm_inputs(cap, args.out / name, lin, poses_settings)
+        row = one(name, cj, imgs, msks, settings, gt_mesh, gt_cams, size, args.out, args.evaluate_only, args.reuse)
         row["sfm_seconds"] = secs
         rows.append(row)
+        if args.sfm_views_exact:
+            stems = {c.stem for c in load_cameras(cj).frames}
+            keep = [k for k, c in enumerate(gt_cams.frames) if c.stem in stems]
+            d = args.out / f"exact-{name}-views"
+            d.mkdir(parents=True, exist_ok=True)
+            save_cameras(d / "cameras.json", CameraSet(tuple(gt_cams.frames[k] for k in keep), gt_cams.light_intensity))
+            rows.append(one(d.name, d / "cameras.json", [images[k] for k in keep], [masks[k] for k in keep], settings,
+                            gt_mesh, gt_cams, size, args.out, args.evaluate_only, args.reuse))
     exact = next((r["accuracy_without"]["accuracy"] for r in rows if r["name"] == "exact"), None)
     result = {"capture": str(cap), "preset": args.preset, "overrides": args.set, "object_size": size,
               "exact_accuracy": exact, "rows": rows}

@@ -3,6 +3,7 @@ import re
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,8 +17,9 @@ from recon.io.images import read_exr, read_ldr, read_mask, srgb_to_linear, write
 from recon.io.mesh import Mesh, read_obj, write_ply
 from recon.poses.frame import rotate_cameras
 from recon.poses.inputs import image_names
-from recon.poses.mapping import mapper_sequence, refine, rescale_model
-from recon.poses.undistort import remap, undistort_maps
+from recon.poses.mapping import (_drop_weak_views, anchored_views, focal_sigma, focal_with_prior, mapper_sequence,
+                                 refine, rescale_model)
+from recon.poses.undistort import distortion_shift, pinhole_camera, remap, undistort_maps
 
 
 def _leftovers(folder):
@@ -194,6 +196,35 @@ def test_undistortion_matches_the_pinhole_image():
     err = np.abs(und[inner] - expected[inner])
     assert err.max() < 0.02, err.max()  # bilinear resampling only; half a pixel off would be ~0.1
     assert pinhole.model_name == "PINHOLE" and pinhole.focal_length_x == pinhole.focal_length_y
+
+
+def test_no_distortion_keeps_the_photo_size():
+    """A distortion that moves no pixel by more than 0.01 px keeps the photo's size and camera
+    (pycolmap.undistort_camera cropped 192 x 144 to 191 x 143 with k = 0 and to 190 x 142 with
+    k = 1e-12: a knife edge between SfM runs); the views pass through unchanged. A real
+    distortion still gets COLMAP's cropped pinhole camera."""
+    import pycolmap
+
+    cam = pycolmap.Camera.create_from_model_name(1, "SIMPLE_RADIAL", 258.7, 192, 144)
+    rng = np.random.default_rng(0)
+    img = rng.random((144, 192, 3)).astype(np.float32)
+    for k in (0.0, 1e-12, -1e-12, 1e-6):
+        cam.params = [258.72245809, 96.0, 72.0, k]
+        pin = pinhole_camera(cam, "SIMPLE_RADIAL")
+        assert (pin.width, pin.height) == (192, 144), k
+        np.testing.assert_allclose(pin.params, [258.72245809, 258.72245809, 96.0, 72.0])
+        assert distortion_shift(cam) < 1e-4
+        np.testing.assert_allclose(remap(img, undistort_maps(cam, pin)), img, atol=1e-3)
+    for k in (0.001, 0.15, -0.3):
+        cam.params = [258.72245809, 96.0, 72.0, k]
+        pin = pinhole_camera(cam, "SIMPLE_RADIAL")
+        ref = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), cam)
+        assert distortion_shift(cam) > 0.02 and (pin.width, pin.height) == (ref.width, ref.height) != (192, 144)
+    cam.params = [258.72245809, 96.0, 72.0, -58.0]  # a drifted fit (seen on the demo): large, not NaN
+    assert distortion_shift(cam) > 1.0
+    cam.params = [258.72245809, 95.0, 72.0, 0.0]  # an off-centre principal point is kept
+    pin = pinhole_camera(cam, "SIMPLE_RADIAL")
+    assert (pin.width, pin.height) == (192, 144) and pin.principal_point_x == 95.0
 
 
 def test_object_frame_centers_scales_and_levels():
@@ -401,6 +432,92 @@ def test_refinement_never_keeps_implausible_intrinsics(synthetic_sfm):
     # the order of mapping trials: with an EXIF focal length the held-intrinsics mapper first
     assert mapper_sequence(rp.PoseSettings(), True)[0] == "incremental_fixed"
     assert "incremental_fixed" not in mapper_sequence(rp.PoseSettings(), False)
+
+
+def test_views_not_anchored_to_the_model_are_dropped(synthetic_sfm):
+    """A pair of views that see mostly each other's points (global mapping once placed such a
+    pair 9x too far along its rays: 0.15 px errors, silhouette consistency 0.98, yet the
+    similarity of the camera centres 21 degrees off the truth) is dropped; no view of a right
+    model is. The pair is made from the synthetic model: its points shared with the other
+    views are detached except 4 per view, and 20 points seen only by the two are added."""
+    import pycolmap
+
+    _, results, _ = synthetic_sfm
+    rec = pycolmap.Reconstruction(results / "poses" / "sparse")
+    n = rec.num_reg_images()
+    keep, tied = anchored_views(rec, 15)
+    assert len(keep) == n and min(tied.values()) >= 15, tied
+    assert _drop_weak_views(pycolmap.Reconstruction(rec), 15) == {}
+    ids = sorted(rec.reg_image_ids(), key=lambda i: -rec.images[i].num_points3D)
+    pair = ids[:2]  # the best-connected views: each keeps far more than 15 points of its own
+    free = {}
+    for i in pair:
+        obs = [k for k, p in enumerate(rec.images[i].points2D) if p.has_point3D()]
+        for k in obs[4:]:
+            rec.delete_observation(i, k)
+        free[i] = [k for k, p in enumerate(rec.images[i].points2D) if not p.has_point3D()]
+    rng = np.random.default_rng(0)
+    for m in range(20):
+        pid = rec.add_point3D(rng.normal(size=3), pycolmap.Track())
+        for i in pair:
+            rec.add_observation(pid, pycolmap.TrackElement(i, free[i][m]))
+    assert all(rec.images[i].num_points3D >= 24 for i in pair)  # the old rule (own points) keeps them
+    dropped = _drop_weak_views(rec, 15)
+    stems = {Path(rec.images[i].name).stem for i in pair}
+    assert set(dropped) == stems and all(v <= 4 for v in dropped.values()), dropped
+    assert rec.num_reg_images() == n - 2
+
+
+def test_focal_length_with_a_prior(synthetic_sfm):
+    """With a focal length prior (EXIF) the final adjustment holds the focal length at the prior
+    (fixed), at the prior and the adjustment's estimate weighted by their variances (auto), or
+    lets it free (free, the prior only started it). Against the true focal length: the
+    adjustment's own standard deviation is of the size of its error, and an exact prior pulls
+    auto towards the truth."""
+    import pycolmap
+
+    capture, results, _ = synthetic_sfm
+    f_true = load_cameras(capture / "gt" / "cameras.json").frames[0].K[0, 0]
+    rec = pycolmap.Reconstruction(results / "poses" / "sparse")
+    cam = next(iter(rec.cameras.values()))
+    shape = (cam.height, cam.width)
+
+    def focal(mode, prior, **kw):
+        r, info = refine(pycolmap.Reconstruction(rec), rp.PoseSettings(num_threads=1, focal_refine=mode, **kw),
+                         shape, prior)
+        f = next(iter(r.cameras.values())).mean_focal_length()
+        assert np.isfinite(f) and info["reprojection_error_after_px"] < 1.0, info
+        return f, info
+
+    f_free, info = focal("free", f_true)
+    assert "focal" not in info
+    sigma = focal_sigma(rec, rp.PoseSettings(num_threads=1))
+    err = abs(f_free / f_true - 1)
+    print(f"\nfree focal {f_free:.2f} px (true {f_true:.2f}: {100 * err:.2f} %), sigma {100 * sigma:.2f} %")  # noqa: T201
+    assert 1e-4 < sigma < 0.05 and err < 4 * sigma
+    f_fixed, info = focal("fixed", 1.03 * f_true)  # a prior 3 % long is held
+    assert f_fixed == pytest.approx(1.03 * f_true, rel=1e-12) and info["focal"]["mode"] == "fixed"
+    f_auto, info = focal("auto", f_true)
+    s_ba, s_p = info["focal"]["adjusted_sigma"], info["focal"]["prior_sigma"]
+    s_ba = 2.0 * s_ba  # focal_sigma_scale
+    w = s_p**2 / (s_p**2 + s_ba**2)  # the adjustment's weight
+    assert f_auto == pytest.approx(w * info["focal"]["adjusted_px"] + (1 - w) * f_true, rel=1e-9)
+    assert abs(f_auto - f_true) < abs(f_free - f_true) or err < 1e-4
+    # a prior trusted 100x more is (nearly) held; one trusted 100x less (nearly) ignored
+    f_tight, _ = focal("auto", 1.01 * f_true, focal_prior_sigma=sigma / 100)
+    f_loose, _ = focal("auto", 1.01 * f_true, focal_prior_sigma=min(0.99, sigma * 200))
+    assert f_tight == pytest.approx(1.01 * f_true, rel=1e-3) and f_loose == pytest.approx(f_free, rel=2e-3)
+    # a prior the photos contradict (30 % long: > 5 combined sigma) is not used in auto
+    f_far, info = focal("auto", 1.3 * f_true)
+    assert f_far == pytest.approx(f_free, rel=1e-6) and info["focal"]["disagreement_sigma"] > 5
+    # no prior: the focal length is the adjustment's whatever the mode
+    f_none, info = focal("fixed", None)
+    assert "focal" not in info and f_none == pytest.approx(f_free, rel=1e-9)
+    for bad in ({"focal_refine": "hold"}, {"focal_prior_sigma": 0.0}, {"focal_prior_sigma": float("nan")},
+                {"focal_sigma_scale": 0}, {"focal_sigma_scale": float("inf")}):
+        with pytest.raises(ValueError):
+            rp.PoseSettings(**bad)
+    assert focal_with_prior(rec, rp.PoseSettings(focal_refine="fixed"), 123.0)["focal_px"] == 123.0
 
 
 def test_sfm_on_real_photos(shared_data, tmp_path):

@@ -22,11 +22,17 @@ the settings (capture.yaml's ``light_intensity``) is written into ``cameras.json
    alternating with new seeds while a trial registers fewer than ``accept_fraction`` of the
    views or ends with drifted intrinsics; the trial with most views wins. Views posed from
    fewer than ``min_view_points`` 3D points are dropped (global mapping places a view from
-   rotations alone). A final bundle adjustment with a Cauchy loss lowers the pull of wrong
-   matches (about 20% smaller pose errors in tests).
+   rotations alone), and so are views that share fewer than that with the rest of the model
+   (a pair seeing mostly each other's points can sit anywhere along its rays). A final
+   bundle adjustment with a Cauchy loss lowers the pull of wrong matches (about 20% smaller
+   pose errors in tests). With a focal length prior (EXIF) its focal length is held at the
+   prior and its own estimate weighted by their variances (``focal_refine``,
+   :func:`~recon.poses.mapping.focal_with_prior`).
 5. Undistortion of the linear EXRs, the masks and the clipped-pixel masks to the pinhole
    camera COLMAP derives (``pycolmap.undistort_camera``), by ``cv2.remap`` in float: the
-   8-bit route of ``pycolmap.undistort_images`` would lose the linear data.
+   8-bit route of ``pycolmap.undistort_images`` would lose the linear data. A distortion that
+   moves no pixel by more than 0.01 px keeps the photo's size (COLMAP's crop of 1-2 pixels
+   was a knife edge between runs).
 6. The object frame: z up (the mean of the cameras' up vectors: photographers hold the camera
    roughly upright), x and y along the principal axes of the sparse points that project
    inside the masks; then a coarse visual hull (64^3) of the undistorted masks around those

@@ -48,6 +48,11 @@ class PoseSettings:
     refine: bool = True  # a final robust bundle adjustment
     refine_loss_scale: float = 0.5  # Cauchy loss scale, pixels
     distortion_gain: float = 0.05  # keep lens distortion only if it cuts the error by more (-1: always)
+    # the focal length with a prior (EXIF): auto (the bundle adjustment's estimate and the prior
+    # weighted by their variances), fixed (held at the prior), free (the prior only starts it)
+    focal_refine: str = "auto"
+    focal_prior_sigma: float = 0.01  # the prior's relative standard deviation (auto)
+    focal_sigma_scale: float = 2.0  # the adjustment's standard deviation times this (auto; see mapping)
     seed: int = 0
     num_threads: int = -1
     # ---- object frame ----
@@ -66,6 +71,12 @@ class PoseSettings:
             raise ValueError(f"sift_encoding must be log or srgb, got {self.sift_encoding!r}")
         if self.mapper not in ("auto", "incremental", "incremental_fixed", "global"):
             raise ValueError(f"mapper must be auto, incremental, incremental_fixed or global, got {self.mapper!r}")
+        if self.focal_refine not in ("auto", "fixed", "free"):
+            raise ValueError(f"focal_refine must be auto, fixed or free, got {self.focal_refine!r}")
+        if not (isinstance(self.focal_prior_sigma, (int, float)) and 0 < self.focal_prior_sigma < 1):
+            raise ValueError(f"focal_prior_sigma must be in (0, 1), got {self.focal_prior_sigma!r}")
+        if not (isinstance(self.focal_sigma_scale, (int, float)) and 0 < self.focal_sigma_scale < 1e6):
+            raise ValueError(f"focal_sigma_scale must be positive, got {self.focal_sigma_scale!r}")
         if self.min_registered < 3:
             raise ValueError(f"min_registered must be >= 3, got {self.min_registered}")
         if not 0 <= self.margin < 1 or not 0 <= self.bbox_percentile < 50:

@@ -230,8 +230,8 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     others = [sorted(Path(m.images[i].name).stem for i in m.reg_image_ids()) for m in models[1:]]
     reasons = unregistered_reasons(db, stems, registered, settings, others)
     for s, k in weak.items():
-        reasons[s] = (f"posed from only {k} 3D points (needs >= {settings.min_view_points}): too little "
-                      "overlap with the other views")
+        reasons[s] = (f"posed from only {k} 3D points seen by the registered views (needs >= "
+                      f"{settings.min_view_points}): too little overlap with the other views")
     if len(registered) < settings.min_registered or len(registered) < settings.min_registered_fraction * n:
         lines = "\n".join(f"  {s}: {reasons[s]}" for s in sorted(reasons))
         split = f" The views split into separate models ({len(models)} models)." if len(models) > 1 else ""

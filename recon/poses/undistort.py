@@ -14,16 +14,50 @@ from recon.io.images import read_exr, read_mask, write_exr, write_mask
 from recon.poses.settings import PoseError
 
 
-def pinhole_camera(cam, camera_model: str):
-    """The pinhole camera (square pixels) of the undistorted images of COLMAP camera ``cam``."""
+def pinhole_camera(cam, camera_model: str, max_shift_px: float = 0.01):
+    """The pinhole camera (square pixels) of the undistorted images of COLMAP camera ``cam``.
+
+    When ``cam``'s distortion moves no pixel by more than ``max_shift_px`` (:func:`distortion_shift`;
+    e.g. a distortion fitted as 0), the pinhole camera of ``cam``'s own size, focal length and
+    principal point: ``pycolmap.undistort_camera`` crops such views by 1 or 2 pixels on a
+    knife edge (192 x 144 became 191 x 143 with k = 0 and 190 x 142 with k = 1e-12, so two
+    SfM runs whose cameras agreed to 1e-15 gave views of different sizes).
+    """
     import pycolmap
 
-    pinhole = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), cam)
+    if distortion_shift(cam) <= max_shift_px:
+        fx, fy = cam.focal_length_x, cam.focal_length_y
+        pinhole = pycolmap.Camera(model="PINHOLE", width=cam.width, height=cam.height,
+                                  params=[fx, fy, cam.principal_point_x, cam.principal_point_y])
+    else:
+        pinhole = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), cam)
     fx, fy = pinhole.focal_length_x, pinhole.focal_length_y
     if abs(fx - fy) > 1e-6 * fx:  # models with two focal lengths: make pixels square
         raise PoseError(f"camera model {camera_model} gave fx={fx:.2f} != fy={fy:.2f}; use "
                         "SIMPLE_RADIAL, RADIAL or SIMPLE_PINHOLE (square pixels)")
     return pinhole
+
+
+def distortion_shift(cam, grid: int = 17) -> float:
+    """The largest distance (pixels) between where ``cam`` and the pinhole camera of its focal
+    length and principal point image the same ray, over the image's border pixels and a
+    ``grid`` x ``grid`` lattice inside (radial distortion is largest at the corners); inf when
+    a ray does not map back."""
+    import pycolmap
+
+    w, h = cam.width, cam.height
+    edge = [np.stack([np.arange(w) + 0.5, np.full(w, y)], 1) for y in (0.0, float(h))]
+    edge += [np.stack([np.full(h, x), np.arange(h) + 0.5], 1) for x in (0.0, float(w))]
+    gx, gy = np.meshgrid(np.linspace(0, w, grid), np.linspace(0, h, grid))
+    pix = np.concatenate(edge + [np.stack([gx.ravel(), gy.ravel()], 1)]).astype(np.float64)
+    plain = pycolmap.Camera(model="PINHOLE", width=w, height=h,
+                            params=[cam.focal_length_x, cam.focal_length_y, cam.principal_point_x,
+                                    cam.principal_point_y])
+    xy = np.asarray(cam.cam_from_img(pix), dtype=np.float64).reshape(-1, 2)
+    back = np.asarray(plain.img_from_cam(np.concatenate([xy, np.ones((len(xy), 1))], 1),
+                                         check_cheirality=False), dtype=np.float64).reshape(-1, 2)
+    d = np.linalg.norm(back - pix, axis=1)
+    return float(d.max()) if np.all(np.isfinite(d)) else float("inf")
 
 
 def undistort_maps(cam, pinhole):

@@ -40,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +50,7 @@ import numpy as np
 from recon.brdf import R_MIN
 from recon.io.atomic import atomic_dir, atomic_path
 from recon.io.cameras import Camera, CameraSet, intrinsics, look_at, save_cameras
+from recon.io.dng import FULL_FRAME_DIAGONAL_MM
 from recon.io.images import linear_to_srgb, write_exr, write_mask, write_png
 from recon.io.mesh import write_obj
 from recon.synth.bake import bake, unwrap
@@ -468,8 +470,10 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
     linear_scale = sensor.linear_scale(h_ref)
     # focal length in mm for the DNG tags: f_px * pixel pitch
     focal_mm = float(cams.frames[0].K[0, 0] * sensor.pixel_pitch_um * 1e-3)
-    # 35-mm equivalent: the same horizontal field of view on a 36-mm wide frame
-    focal_35mm = float(cams.frames[0].K[0, 0] * 36.0 / s.width)
+    # 35-mm equivalent: the same diagonal field of view on a 36 x 24 mm frame (the convention
+    # of phones, of the DNG writer and of linearize's reader; by the width, a 4:3 photo's tag
+    # was 4 % long: 49 mm, read back as 271.8 px for 263.8 px)
+    focal_35mm = float(cams.frames[0].K[0, 0] * FULL_FRAME_DIAGONAL_MM / math.hypot(s.width, s.height))
     noise_rng = np.random.default_rng(np.random.SeedSequence([int(s.seed), 0xA015E]))
     views_im = phone.view_imaging(s, len(cams))
     offset = np.asarray(s.flash_offset) * s.scale

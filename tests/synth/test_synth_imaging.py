@@ -70,6 +70,7 @@ def test_photos_follow_gt_imaging(phone_capture):
     assert gt["flash_offset_camera"] == [0.19, -0.05, 0.0]
     assert gt["tone_curve"]["name"] == "phone" and gt["falloff"]["k1"] == -0.3
     g = np.array(gt["exposure_gains"])
+    f_true = load_cameras(cap / "gt" / "cameras.json").frames[0].K[0, 0]
     assert np.std(np.log2(g)) > 0.05  # the jitter is there
     v = falloff_map(40, 30, -0.3, 0.05)
     for k, view in enumerate(gt["views"]):
@@ -78,6 +79,10 @@ def test_photos_follow_gt_imaging(phone_capture):
         # EXIF: exposure and focal length read back; linearize divided the recorded stops out
         assert meta["kind"] == "ldr" and abs(meta["exposure_time"] - view["exposure_time"]) < 1e-6
         assert meta["focal_length_mm"] is not None and meta["focal_length_35mm"] is not None
+        # the 35 mm equivalent is an integer over the diagonal (as phones write it): read back
+        # within half a unit of the true focal length (by the width it was 4 % long)
+        w, h = meta["width"], meta["height"]
+        assert abs(meta["focal_length_px"] - f_true) <= 0.5 * np.hypot(w, h) / 43.267 + 1e-9, (meta, f_true)
         x = read_exr(cap / "gt" / "linear" / f"{stem}.exr")
         y = x * view["exposure_gain"] * np.array(view["white_balance"]) * v[:, :, None] * 2.0 ** view["stops"]
         expect = linearized_tone(y, "phone", 1.4) / 2.0 ** view["stops"]
