@@ -10,7 +10,8 @@ cameras and masks given so that only the imaging differs):
   EXIF, ambient light 10 % of the flash, lens falloff -35 % in the corners, 2 % white-balance
   jitter (no term models it).
 
-Runs the whole workflow (Snakemake up to ``report/metrics.json``) on ``ideal``, on ``phone``
+Runs the whole workflow (Snakemake up to ``report/metrics.json``) on ``ideal`` (with the loop's
+imaging selection off and on: does it keep nothing there?), on ``phone``
 with ``imaging_loop: off`` (the ideal formation in the loop) and on ``phone`` with
 ``imaging_loop: select`` (the selection on stage 0's model, the later stages under the chosen
 terms), all at ``--preset``; reads the report's metrics (DESIGN section 5: accuracy and
@@ -44,7 +45,8 @@ log = logging.getLogger("bench.phone_geometry")
 PHONE = {"format": "jpg", "tone_curve": "phone", "flash_offset": (0.19, 0.0, 0.0), "exposure_jitter": 0.25,
          "exposure_variation": 0.5, "ambient": 0.1, "falloff": (-0.35, 0.0), "wb_jitter": 0.02}
 RUNS = {  # name -> (capture, optimize overrides in capture.yaml)
-    "ideal": ("ideal", {}),
+    "ideal": ("ideal", {"imaging_loop": "off"}),
+    "ideal_loop_select": ("ideal", {"imaging_loop": "select"}),
     "phone_loop_off": ("phone", {"imaging_loop": "off"}),
     "phone_loop_select": ("phone", {"imaging_loop": "select"}),
 }
@@ -121,7 +123,7 @@ def table(results: dict) -> str:
     for run, r in results.items():
         acc = r.get("accuracy")
         ratio = f"{acc / ideal:.2f}" if acc and ideal else "-"
-        terms = ", ".join(r.get("loop_terms") or []) or ("-" if run != "phone_loop_select" else "none")
+        terms = ", ".join(r.get("loop_terms") or []) or ("none" if run.endswith("loop_select") else "-")
         rows.append(f"| {run} | {terms} | {acc:.5f} | {ratio} | {r.get('completeness', float('nan')):.5f} | "
                     f"{r.get('image_rmse') or float('nan'):.4f} | "
                     f"{((r.get('textures') or {}).get('texture_rmse') or {}).get('diffuse', float('nan')):.4f} | "
