@@ -69,10 +69,10 @@ optimize_capture(args["images"], args["masks"], None, args["cameras"], args["ini
 """
 
 
-def _killed_run(root, out, kill_after):
+def _killed_run(root, out, kill_after, settings=TINY):
     images, masks, _, cams, init = _inputs(root)
     args = {"images": [str(p) for p in images], "masks": [str(p) for p in masks], "cameras": str(cams),
-            "init": str(init), "out": str(out), "settings": TINY.to_dict(), "kill_after": kill_after}
+            "init": str(init), "out": str(out), "settings": settings.to_dict(), "kill_after": kill_after}
     p = subprocess.run([sys.executable, "-c", KILLER.format(here=str(HERE)), json.dumps(args)],
                        capture_output=True, text=True, cwd=REPO, timeout=300)
     assert p.returncode == -9, p.stderr[-3000:]  # SIGKILL
@@ -309,3 +309,33 @@ def test_support_plane_is_never_crossed(capture, tmp_path):
     assert sum(r["plane_projected"] for r in log) > 0
     free_log = [json.loads(x) for x in (tmp_path / "free" / "log.jsonl").read_text().splitlines()]
     assert all(r["plane_projected"] == 0 for r in free_log)
+
+
+def test_imaging_loop_resumes_after_kill_and_matches(capture, tmp_path):
+    """imaging_loop: select, killed in stage 1 (after the selection on stage 0's model): the
+    resumed run restores the chosen terms and their refined values and ends where the
+    uninterrupted run does."""
+    import dataclasses
+
+    root, _ = capture
+    images, masks, sats, cams, init = _inputs(root)
+    # the flash offset given (capture.yaml), so stage 1 renders with it whatever the selection keeps
+    s = dataclasses.replace(TINY, imaging_loop="select", imaging_terms=("exposure", "falloff"), holdout_every=4,
+                            select_iterations=8, select_image_size=32, select_spp=1, flash_offset=(0.02, 0.0, 0.0))
+    old = _single_thread()
+    try:
+        ref = optimize_capture(images, masks, sats, cams, init, tmp_path / "ref", s, progress=False)
+        err = _killed_run(root, tmp_path / "run", 7, s)  # stage 1, iteration 2 (last checkpoint: iteration 1)
+        assert "imaging terms for the loop" in err
+        got = optimize_capture(images, masks, sats, cams, init, tmp_path / "run", s, progress=False)
+    finally:
+        import drjit as dr
+
+        dr.set_thread_count(old)
+    assert ref["imaging_loop"]["evidence"]["after_stage"] == 0
+    np.testing.assert_allclose(ref["imaging_loop"]["values_after_loop"]["flash_offset"], [0.02, 0.0, 0.0], rtol=1e-6)
+    assert got["imaging_loop"]["chosen"] == ref["imaging_loop"]["chosen"]
+    assert got["imaging_loop"]["values_after_loop"] == ref["imaging_loop"]["values_after_loop"]
+    np.testing.assert_array_equal(read_obj(tmp_path / "ref" / "mesh.obj").v_pos,
+                                  read_obj(tmp_path / "run" / "mesh.obj").v_pos)
+    np.testing.assert_array_equal(read_exr(tmp_path / "ref" / "diffuse.exr"), read_exr(tmp_path / "run" / "diffuse.exr"))
