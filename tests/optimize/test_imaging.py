@@ -276,8 +276,8 @@ def test_imaging_settings_validation():
     assert OptimizeSettings(flash_offset=[0.01, 0, 0]).to_dict()["flash_offset"] == [0.01, 0.0, 0.0]
 
 
-def _tone_error(p, params):
-    """Max |srgb(h_fit(x)) - srgb(h_true(x))| over the linear values the object's pixels take
+def _tone_error(p, params, scale: float = 1.0):
+    """Max |srgb(h_fit(x)) - srgb(h_true(scale x))| over the linear values the object's pixels take
     (1st to 99th percentile of the training targets, mapped back through the true curve)."""
     from recon.optimize.imaging import apply_tone, srgb_encode
     from recon.synth.imaging import linearized_tone
@@ -289,7 +289,7 @@ def _tone_error(p, params):
     lo, hi = np.interp(np.percentile(t, [1, 99]), truth, xs)
     x = torch.tensor(np.linspace(lo, hi, 200), dtype=torch.float32)
     fitted = apply_tone(x, params.tone_raw.detach())
-    tr = torch.tensor(np.interp(x.numpy(), xs, truth), dtype=torch.float32)
+    tr = torch.tensor(np.interp(np.clip(x.numpy() * scale, 0.0, 1.0), xs, truth), dtype=torch.float32)
     return float((srgb_encode(fitted) - srgb_encode(tr)).abs().max()), (float(lo), float(hi))
 
 
@@ -298,7 +298,10 @@ def test_phone_tone_curve_kept_and_recovered(tmp_path):
     """24 JPEGs with the phone's tone curve (sRGB + S-curve, p = 1.4): the tone term is kept and
     the fitted curve follows the truth over the values the object takes. The issue asks for 0.02
     (encoded); measured 0.026 (2026-11-24, this test) and 0.027 (bench/phone.py): the bound below
-    is what is achieved today, not the target."""
+    is what is achieved today, not the target. Most of it is a scale of the curve's input: with
+    the albedo and the exposure free, h(x) and h(s x) / albedo s explain the photos alike (h(1) = 1
+    pins s only where the object reaches white); with the best s the curve is within 0.010
+    (s = 0.945; measured 2026-11-24), which is the part the photos determine."""
     from recon.synth.capture import SynthSettings, make_capture
 
     cap = make_capture(tmp_path / "tone", SynthSettings(**{**SMALL, "format": "jpg"}, n_views=24, width=128, height=96,
@@ -308,6 +311,8 @@ def test_phone_tone_curve_kept_and_recovered(tmp_path):
     assert "tone" in ev["chosen"], ev["candidates"]
     err, rng = _tone_error(p, fit.params)
     assert err < 0.03, (err, rng)
+    aligned = min(_tone_error(p, fit.params, s)[0] for s in np.linspace(0.8, 1.25, 91))
+    assert aligned < 0.015, aligned
 
 
 # ---------------------------------------------------------------------- inside the geometry loop
