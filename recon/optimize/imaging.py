@@ -575,7 +575,7 @@ def run_imaging_selection(settings, mesh, maps: dict, material: MaterialModel, c
     train_set = train_set if train_set is not None else views.at(size)
     heldout_set = heldout_set if heldout_set is not None else heldout.at(size)
     fit, ev = select_imaging(mesh, Fit(material, maps, float("nan")), covered, train_set, heldout_set,
-                             light, tone_scale, settings.selection_settings(), candidates=terms,
+                             light, tone_scale, settings.imaging_selection_settings(), candidates=terms,
                              offset_given=settings.flash_offset, spp=int(settings.select_spp),
                              seed=int(settings.seed) + 17)
     ev["tone_curve"] = {"setting": settings.tone_curve, "photos_are_ldr": ldr, "tried": tone}
@@ -710,7 +710,7 @@ def select_for_loop(settings, mesh, maps: dict, material: MaterialModel, covered
     if not tone:
         terms = tuple(t for t in terms if t != "tone")
     fit, ev = select_imaging(mesh, Fit(material, maps, float("nan")), covered, train_set, heldout_set, light,
-                             tone_scale, settings.selection_settings(), candidates=terms,
+                             tone_scale, settings.imaging_selection_settings(), candidates=terms,
                              offset_given=settings.flash_offset, spp=int(settings.select_spp),
                              seed=int(settings.seed) + 23)
     ev["tone_curve"] = {"setting": settings.tone_curve, "photos_are_ldr": ldr, "tried": tone}

@@ -605,7 +605,7 @@ def optimize_capture(
     if loop_imaging and not settings.select_imaging:
         t0 = time.perf_counter()
         refit = refit_under(run.imaging.params, model, final, final_maps, st.covered, train_vs, light, tone_scale,
-                            settings.selection_settings(), spp=int(settings.select_spp), seed=int(settings.seed) + 29)
+                            settings.imaging_selection_settings(), spp=int(settings.select_spp), seed=int(settings.seed) + 29)
         final_maps = refit.material.maps
         timer.add("material", time.perf_counter() - t0)
         log.info("maps refitted under the loop's imaging terms (%s): %.1f s", ", ".join(run.imaging.params.model.terms)

@@ -231,6 +231,7 @@ class OptimizeSettings:
     imaging_loop: str = "off"
     imaging_loop_stage: int = 0
     imaging_loop_lr: float = 0.01
+    imaging_min_gain: float = 0.015
     w_imaging: float = 0.001
 
     def __post_init__(self):
@@ -326,6 +327,11 @@ class OptimizeSettings:
     def holds_out(self) -> bool:
         """Whether views are held out of the optimization (for selection or the plateau test)."""
         return bool(self.select_material or self.stop_on_plateau or self.select_imaging or self.imaging_loop != "off")
+
+    def imaging_selection_settings(self):
+        """The selection settings of the imaging terms: those of the material selection with
+        ``imaging_min_gain`` as the smallest relative gain (see config/README.md)."""
+        return dataclasses.replace(self.selection_settings(), min_gain=float(self.imaging_min_gain))
 
     def selection_settings(self):
         return SelectionSettings(
