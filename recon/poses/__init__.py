@@ -13,9 +13,16 @@ the settings (capture.yaml's ``light_intensity``) is written into ``cameras.json
 2. SIFT features (peak threshold 0.001: smooth, flash-lit objects have little contrast) with
    one shared camera (``CameraMode.SINGLE``: one photo camera, one zoom) and the focal length
    prior from ``linear.json`` when the linearize stage found one.
-3. Matching: exhaustive up to ``exhaustive_max_views`` views, else sequential (captures are
-   shot walking around the object, so neighbours in file order overlap; no vocabulary tree
-   is needed). The two-view RANSAC threshold scales with the image (0.4% of the long side,
+3. Matching: exhaustive up to ``exhaustive_max_views`` (40) views; beyond, ``ordered``
+   (:mod:`~recon.poses.pairs`): people walk around the object, so each view is matched with
+   its next ``ordered_neighbors`` views in file order, wrapping around (the loop closes), and
+   with its ``retrieval_neighbors`` most similar views by a global descriptor of the SIFT
+   features already extracted (the other rings, other loop closures; no vocabulary tree
+   file). When the verified pairs show the files are not in capture order, or leave the views
+   in separate groups, the remaining pairs are matched exhaustively. On an 80-view phone
+   capture: 670 pairs instead of 3160, matching 5x faster, the stage's CPU time 0.41x, 80/80
+   registered either way (docs/sfm_speed.md). The
+   two-view RANSAC threshold scales with the image (0.4% of the long side,
    1 to 4 px): COLMAP's fixed 4 px lets chance matches of repeated texture pass as verified
    pairs on small images, and those wrong pairs broke the mapping in tests.
 4. Mapping: global (rotation averaging, robust on orbits around an object) then incremental,
@@ -51,7 +58,7 @@ SIFT images and COLMAP database).
 
 Modules: :mod:`~recon.poses.settings` (:class:`PoseSettings`, :class:`PoseError`),
 :mod:`~recon.poses.inputs` (the linearize and masks stages' files), :mod:`~recon.poses.features`
-(steps 1-3), :mod:`~recon.poses.mapping` (step 4), :mod:`~recon.poses.undistort` (step 5),
+(steps 1-3), :mod:`~recon.poses.pairs` (the ordered matcher's pairs), :mod:`~recon.poses.mapping` (step 4), :mod:`~recon.poses.undistort` (step 5),
 :mod:`~recon.poses.frame` (step 6), :mod:`~recon.poses.stage` (:func:`run_poses`: the given
 cameras' pass-through, the SfM sequence and the outputs).
 """

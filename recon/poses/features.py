@@ -3,7 +3,8 @@
 SIFT runs on 8-bit PNGs of the linear views (:func:`sift_image`), without specular highlights
 (feature masks: highlights move with the flash), with one shared camera and the EXIF focal
 length as a prior. Matching is exhaustive up to ``exhaustive_max_views`` views, else
-sequential; the two-view RANSAC threshold scales with the image (:func:`verify_max_error`).
+``ordered`` (:mod:`recon.poses.pairs`, :func:`matcher_kind`); the two-view RANSAC threshold
+scales with the image (:func:`verify_max_error`).
 """
 
 from __future__ import annotations
@@ -142,16 +143,91 @@ def extract_and_match(db: Path, images: Path, n_views: int, settings: PoseSettin
     verification = pycolmap.TwoViewGeometryOptions(min_num_inliers=settings.min_num_inliers)
     verification.ransac.max_error = verify_max_error(settings, shape)
     verification.ransac.random_seed = settings.seed  # unseeded, the verified pairs change run to run
-    kind = settings.matcher
-    if kind == "auto":
-        kind = "exhaustive" if n_views <= settings.exhaustive_max_views else "sequential"
+    kind = matcher_kind(settings, n_views)
+    info = {}
     if kind == "exhaustive":
         pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
                                   device=pycolmap.Device.cpu)
+    elif kind == "ordered":
+        info = _match_ordered(db, n_views, settings, matching, verification)
     else:
         pairing = pycolmap.SequentialPairingOptions(overlap=settings.sequential_overlap, quadratic_overlap=True)
         pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
                                   verification_options=verification, device=pycolmap.Device.cpu)
     t2 = time.perf_counter()
-    return {"matcher": kind, "extract_s": t1 - t0, "match_s": t2 - t1}
+    return {"matcher": kind, "extract_s": t1 - t0, "match_s": t2 - t1, "matching": info}
+
+
+def matcher_kind(settings: PoseSettings, n_views: int) -> str:
+    """The matcher that runs: ``settings.matcher``, or for ``auto`` exhaustive up to
+    ``exhaustive_max_views`` views (few pairs: every pair is cheap insurance) and ``ordered``
+    beyond (see :mod:`recon.poses.pairs`; it falls back to exhaustive when the order does not
+    hold)."""
+    if settings.matcher != "auto":
+        return settings.matcher
+    return "exhaustive" if n_views <= settings.exhaustive_max_views else "ordered"
+
+
+def _image_ids(db) -> list[int]:
+    """The database's image ids in capture (file name) order."""
+    images = sorted(db.read_all_images(), key=lambda im: im.name)
+    return [im.image_id for im in images]
+
+
+def _verified_pairs(db, index: dict[int, int], min_inliers: int) -> set[tuple[int, int]]:
+    import pycolmap
+
+    pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+    out = set()
+    for pid, k in zip(pair_ids, inliers, strict=True):
+        a, b = pycolmap.pair_id_to_image_pair(pid)
+        if k >= min_inliers and a in index and b in index:
+            out.add((min(index[a], index[b]), max(index[a], index[b])))
+    return out
+
+
+def _match_ordered(db_path: Path, n_views: int, settings: PoseSettings, matching, verification) -> dict:
+    """The ``ordered`` matcher (:mod:`recon.poses.pairs`): neighbours in capture order with
+    wrap-around, plus the most similar views by retrieval; exhaustive for the rest when the
+    verified pairs show that the order does not hold. Returns what was matched."""
+    import pycolmap
+
+    from recon.poses.pairs import ordered_matching_ok, ordered_pairs, retrieval_pairs
+
+    t0 = time.perf_counter()
+    db = pycolmap.Database.open(db_path)
+    try:
+        ids = _image_ids(db)
+        names = {im.image_id: im.name for im in db.read_all_images()}
+        seq = ordered_pairs(len(ids), settings.ordered_neighbors, wrap=True)
+        descriptors = []
+        if settings.retrieval_neighbors > 0:
+            descriptors = [np.asarray(db.read_descriptors(i).data) for i in ids]
+    finally:
+        db.close()
+    loops = retrieval_pairs(descriptors, settings.retrieval_neighbors, exclude=seq, seed=settings.seed) \
+        if descriptors else set()
+    pairs = sorted(seq | loops)
+    t1 = time.perf_counter()
+    pairs_file = Path(db_path).parent / "pairs.txt"
+    pairs_file.write_text("".join(f"{names[ids[i]]} {names[ids[j]]}\n" for i, j in pairs))
+    pycolmap.match_image_pairs(db_path, matching_options=matching,
+                               pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pairs_file)),
+                               verification_options=verification, device=pycolmap.Device.cpu)
+    db = pycolmap.Database.open(db_path)
+    try:
+        verified = _verified_pairs(db, {i: k for k, i in enumerate(ids)}, settings.min_num_inliers)
+    finally:
+        db.close()
+    ok, why = ordered_matching_ok(len(ids), verified)
+    info = {"pairs": len(pairs), "ordered_pairs": len(seq), "retrieval_pairs": len(loops),
+            "retrieval_s": t1 - t0, "verified_pairs": len(verified), "order_check": why,
+            "exhaustive_fallback": not ok}
+    if not ok:
+        import logging
+
+        logging.getLogger(__name__).warning("ordered matching: %s; matching the remaining pairs exhaustively", why)
+        pycolmap.match_exhaustive(db_path, matching_options=matching, verification_options=verification,
+                                  device=pycolmap.Device.cpu)
+    return info
 

@@ -29,8 +29,10 @@ class PoseSettings:
     max_ratio: float = 0.8  # SIFT ratio test
     camera_model: str = "SIMPLE_RADIAL"  # shared camera; PINHOLE-like models skip distortion
     # ---- matching ----
-    matcher: str = "auto"  # auto | exhaustive | sequential
-    exhaustive_max_views: int = 120  # auto: exhaustive up to this many views
+    matcher: str = "auto"  # auto | exhaustive | ordered | sequential (see recon.poses.pairs)
+    exhaustive_max_views: int = 40  # auto: exhaustive up to this many views, ordered beyond
+    ordered_neighbors: int = 5  # ordered: each view with its next k in capture order (wrapping around)
+    retrieval_neighbors: int = 5  # ordered: and with its m most similar views (loop closure)
     sequential_overlap: int = 15
     min_num_inliers: int = 12  # verified two-view geometry
     verify_max_error: float = 0.0  # RANSAC epipolar threshold, pixels; 0: 0.4% of the long side in [1, 4]
@@ -40,6 +42,7 @@ class PoseSettings:
     abs_pose_min_num_inliers: int = 15
     mapping_trials: int = 4  # retries (other mapper, other seed) while too many views are left out
     accept_fraction: float = 0.95  # a trial registering this fraction of the views ends the retries
+    agree_deg: float = 1.0  # ... or, when the masks disagree, two mappers' rotations all within this (0: off)
     max_mapping_seconds: float = 600.0  # per incremental trial
     min_registered: int = 3
     min_view_points: int = 15  # views posed from fewer 3D points are dropped (unreliable)
@@ -65,8 +68,10 @@ class PoseSettings:
     light_intensity: float | None = None
 
     def __post_init__(self):
-        if self.matcher not in ("auto", "exhaustive", "sequential"):
-            raise ValueError(f"matcher must be auto, exhaustive or sequential, got {self.matcher!r}")
+        if self.matcher not in ("auto", "exhaustive", "ordered", "sequential"):
+            raise ValueError(f"matcher must be auto, exhaustive, ordered or sequential, got {self.matcher!r}")
+        if self.ordered_neighbors < 1 or self.retrieval_neighbors < 0:
+            raise ValueError("ordered_neighbors must be >= 1 and retrieval_neighbors >= 0")
         if self.sift_encoding not in ("log", "srgb"):
             raise ValueError(f"sift_encoding must be log or srgb, got {self.sift_encoding!r}")
         if self.mapper not in ("auto", "incremental", "incremental_fixed", "global"):

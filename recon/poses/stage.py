@@ -217,6 +217,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
                                      max_features=settings.max_num_features if up == 1
                                      else min(settings.max_num_features, settings.max_num_features_upsampled)))
     matcher = timings.pop("matcher")
+    matching = timings.pop("matching")
 
     # ---- mapping ----
     t0 = time.perf_counter()
@@ -328,6 +329,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
                    "focal_prior_px": f_prior},
         "pinhole": {"width": pinhole.width, "height": pinhole.height, "K": K.tolist()},
         "matcher": matcher,
+        "matching": matching,
         "sift_upsample": up,
         "mapper": settings.mapper,
         "trials": trials,
