@@ -735,61 +735,6 @@ def align_heldout(run: _Run, st: _Stage) -> dict:
             "tiles": tiles, "corrections": ali.corrections(object_size=run.bbox_scale)}
 
 
-def align_training(run: _Run, st: _Stage, n: int) -> dict:
-    """A camera-only phase: ``n`` Adam steps of all training views' pose corrections and the
-    intrinsics (the run's refinement) against stage ``st``'s fixed model, at its image size.
-
-    In the loop a view's pose only gets a gradient in the iterations that render it (about one
-    in n_views / views_per_iteration); here every step renders all of them (in batches of
-    ``views_per_iteration``, gradients summed), as bundle-adjusting methods alternate pose and
-    scene updates. Same objective as the loop's camera part (rendering loss plus ``w_camera``
-    times the prior over all views), a fresh Adam at the base camera rates decaying to 1/10,
-    the similarity gauge projected out after every step; the model and the loop's optimizer
-    state are untouched. Returns the rendering loss (mean over the views) before and after.
-    """
-    settings, ref = run.settings, run.cameras.ref
-    targets = st.targets
-    n_views = len(targets)
-    batch = max(1, min(int(settings.views_per_iteration), n_views))
-    chunks = [np.arange(i, min(i + batch, n_views)) for i in range(0, n_views, batch)]
-    v = torch.from_numpy(st.mesh.v_pos).to(torch.float32)
-    with torch.no_grad():
-        maps = _map_values(settings, st.maps)
-    lighting = run.imaging.lighting() if run.imaging is not None else {}
-    w = run.weights.get("camera", 0.0)
-    opt = torch.optim.Adam(ref.param_groups(), betas=settings.betas)
-    base_lr = [g["lr"] for g in opt.param_groups]
-    losses = []
-    for it in range(n + 1):  # the last pass only measures
-        for g, lr in zip(opt.param_groups, base_lr, strict=True):
-            g["lr"] = lr * 0.1 ** (it / max(n - 1, 1))
-        opt.zero_grad(set_to_none=True)
-        total = 0.0
-        for k, idx in enumerate(chunks):
-            cams = [targets.cameras[i] for i in idx]
-            with torch.set_grad_enabled(it < n):
-                img = st.renderer.render_torch(v, maps["diffuse"], maps["specular"], maps["roughness"],
-                                               ref.cameras(idx, cams), run.light,
-                                               seed=ckpt.render_seed(settings.seed, 2000 + st.index, it * len(chunks) + k),
-                                               camera_table=ref.table(idx, cams), **lighting)
-                if run.imaging is not None:
-                    img = run.imaging.apply(img, idx)
-                loss = objective.render_loss(img, targets.images[idx], targets.weights[idx], settings.tone_map,
-                                             run.tone_scale) * (len(idx) / n_views)
-                total += float(loss.detach())
-                if w and it < n:
-                    loss = loss + w * ref.prior_loss(idx) * (len(idx) / n_views)
-                if it < n:
-                    loss.backward()
-        losses.append(total)
-        if it < n:
-            opt.step()
-            ref.fix_gauge()
-    if run.imaging is not None:
-        run.imaging.zero_grad()
-    return {"iterations": n, "loss_before": losses[0], "loss_after": losses[-1]}
-
-
 def cameras_source_of(cameras_json: str | os.PathLike) -> str | None:
     """The ``source`` ("sfm" or "given") the poses stage recorded in ``poses.json`` beside
     ``cameras_json``; None when there is no such record."""
@@ -883,13 +828,6 @@ def _run_stages(run: _Run, prog: _Progress, init: Mesh, state: dict | None, star
         prev_mesh = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
         with torch.no_grad():
             prev_maps = {k: v.numpy().astype(np.float32) for k, v in _map_values(settings, st.maps).items()}
-        if run.cameras is not None and int(settings.camera_stage_align_iterations) > 0 and si + 1 < len(stages):
-            t0 = time.perf_counter()
-            info = align_training(run, st, int(settings.camera_stage_align_iterations))
-            stage_infos[si]["camera_alignment"] = info
-            timer.add("cameras", time.perf_counter() - t0)
-            log.info("stage %d: training poses aligned to its model (%d steps): loss %.5f -> %.5f", si,
-                     int(settings.camera_stage_align_iterations), info["loss_before"], info["loss_after"])
         if run.imaging is not None and run.imaging.evidence is None and si >= int(settings.imaging_loop_stage) \
                 and si + 1 < len(stages):
             t0 = time.perf_counter()

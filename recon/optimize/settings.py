@@ -146,12 +146,7 @@ class OptimizeSettings:
     (relative), ``camera_sigma_principal`` (fraction of the image size). Adam rates per step:
     ``camera_lr_rotation_deg``, ``camera_lr_translation`` (fraction of the scene size),
     ``camera_lr_focal`` (log focal), ``camera_lr_principal``; they follow the stage's
-    ``lr_scale`` and ``lr_decay`` like the other rates. ``camera_stage_align_iterations``:
-    at each boundary between coarse-to-fine stages, that many steps of a camera-only alignment
-    of all training views at once against the fixed model of the stage just finished (their
-    poses and the intrinsics, the prior and the gauge as in the loop, rates decaying to 1/10),
-    so that every view's pose is stepped in every alignment step, not only in the 1 of
-    n_views / views_per_iteration iterations that render it (0: off).
+    ``lr_scale`` and ``lr_decay`` like the other rates.
     The camera's imaging (:mod:`recon.optimize.imaging`, DESIGN section 6): ``select_imaging``
     (after the material model, on the same held-out views) tries the terms of ``imaging_terms``
     (flash_offset, exposure, ambient, falloff, tone) and keeps each only where it pays off the
@@ -229,7 +224,6 @@ class OptimizeSettings:
     camera_lr_focal: float = 0.0005
     camera_lr_principal: float = 0.0002
     camera_align_iterations: int = 40
-    camera_stage_align_iterations: int = 0
     select_imaging: bool = False
     imaging_terms: tuple = ("flash_offset", "exposure", "ambient", "falloff", "tone")
     flash_offset: tuple | None = None
@@ -309,9 +303,8 @@ class OptimizeSettings:
             raise ValueError(f"select_min_gain must be >= 0, got {self.select_min_gain}")
         if self.refine_cameras not in CAMERA_MODES:
             raise ValueError(f"refine_cameras must be one of {CAMERA_MODES}, got {self.refine_cameras!r}")
-        for name in ("camera_align_iterations", "camera_stage_align_iterations"):
-            if int(getattr(self, name)) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if int(self.camera_align_iterations) < 0:
+            raise ValueError(f"camera_align_iterations must be >= 0, got {self.camera_align_iterations}")
         self.camera_prior()  # validates the camera prior's values
         for name in ("w_laplacian", "w_edge", "w_normal", "w_specular", "w_roughness", "w_camera"):
             if getattr(self, name) < 0:

@@ -185,34 +185,3 @@ def test_select_decides_on_held_out_views_and_the_report_shows_it(capture, tmp_p
     assert m["selection"]["accepted"] == info["refined"]
     page = render_page(Page(capture="c", preset=None, camera_refinement=m))
     assert "Cameras refined by the renderer" in page and all(f"<td>{v}</td>" in page for v in m["corrections"]["views"])
-
-
-def test_stage_alignment_steps_every_training_view(capture, tmp_path):
-    """``camera_stage_align_iterations``: at the boundary of two stages every training view's
-    pose is aligned to the first stage's model (the rendering loss falls, all views move, the
-    gauge holds); with 0 there is no such phase, and it is refused negative."""
-    with pytest.raises(ValueError, match="camera_stage_align_iterations"):
-        OptimizeSettings(camera_stage_align_iterations=-1)
-    images, masks = _inputs(capture)
-    cams_json, true = _sfm_cameras(capture, tmp_path / "poses", deg=1.5, seed=2)
-    stages = (StageSettings(0.14, 32, 8), StageSettings(0.12, 32, 4))
-    runs = {}
-    for n in (0, 8):
-        s = _settings(refine_cameras="on", stages=stages, camera_stage_align_iterations=n, camera_lr_rotation_deg=0.1)
-        runs[n] = optimize_capture(images, masks, None, cams_json, capture / "init.obj", tmp_path / f"a{n}", s,
-                                   progress=False)
-    assert "camera_alignment" not in runs[0]["stages"][0]
-    info = runs[8]["stages"][0]["camera_alignment"]
-    assert "camera_alignment" not in runs[8]["stages"][1]  # none after the last stage
-    assert info["iterations"] == 8 and np.isfinite(info["loss_before"]) and np.isfinite(info["loss_after"])
-    assert info["loss_after"] < info["loss_before"], info
-    moved = runs[8]["camera_refinement"]["corrections"]["views"]
-    assert len(moved) == 8 and all(v["rotation_deg"] > 0 for v in moved.values())
-    cams = load_cameras(tmp_path / "a8" / "cameras.json")
-    for c in cams.frames:
-        assert np.all(np.isfinite(c.K)) and np.all(np.isfinite(c.world_to_camera))
-    # the gauge: the refined centres keep their centroid (the similarity is projected out)
-    given = load_cameras(cams_json).by_stem()
-    c0 = np.mean([-given[c.stem].world_to_camera[:3, :3].T @ given[c.stem].world_to_camera[:3, 3] for c in cams.frames], 0)
-    c1 = np.mean([-c.world_to_camera[:3, :3].T @ c.world_to_camera[:3, 3] for c in cams.frames], 0)
-    assert np.linalg.norm(c1 - c0) < 1e-3 * np.linalg.norm(c0)
