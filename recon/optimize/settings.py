@@ -148,7 +148,8 @@ class OptimizeSettings:
     ``camera_lr_focal`` (log focal), ``camera_lr_principal``; they follow the stage's
     ``lr_scale`` and ``lr_decay`` like the other rates. ``camera_first_stage``: the cameras are
     held through the coarse-to-fine stages before this one and stepped from it on (0: every
-    stage).
+    stage; 1 keeps the coarsest surface's shape errors out of the cameras: better for cameras
+    good to a few tenths of a pixel, worse for errors of a degree, docs/camera_refine.md).
     The camera's imaging (:mod:`recon.optimize.imaging`, DESIGN section 6): ``select_imaging``
     (after the material model, on the same held-out views) tries the terms of ``imaging_terms``
     (flash_offset, exposure, ambient, falloff, tone) and keeps each only where it pays off the
