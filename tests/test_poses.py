@@ -349,6 +349,36 @@ def test_sfm_recovers_synthetic_cameras(synthetic_sfm):
     assert diag["mean_reprojection_error_px"] < 1.0
 
 
+def test_small_photos_get_a_second_pass_on_enlarged_images(tmp_path_factory):
+    """32 noise-free views of 192 x 144: SIFT finds too few features on some views at that size
+    (the first pass registers < 95 %); the stage runs SfM again on 2x enlarged SIFT images and
+    keeps it because it registers more views, and poses.json says so (docs/camera_refine.md:
+    24 -> 32 of 32 views of the bench's JPEG capture, 25 -> 32 of its EXR twin). With the
+    render noise of the other tests' captures the enlarged pass splits the model (6 views) and
+    is not kept: the retry only replaces a pass that registers fewer views."""
+    capture = synth_capture(tmp_path_factory.getbasetemp(), n_views=32, width=192, height=144, noise=False)
+    results = tmp_path_factory.mktemp("sfm_small")
+    linear, masks = linearize_and_mask(capture, results)
+    diag = rp.run_poses(linear, results / "poses", _capture_settings(capture, num_threads=1), masks_dir=masks,
+                        linear_json=linear / "linear.json")
+    retry = diag["sift_upsample_retry"]
+    assert retry is not None and retry["registered_before"] < 0.95 * 32, retry
+    assert retry["kept"] and retry["registered_upsampled"] > retry["registered_before"], retry
+    assert diag["registered"] == retry["registered_upsampled"] and diag["sift_upsample"] == 2
+    assert diag["timings"]["retry_upsampled_s"] > 0 and not (results / "poses" / "work_upsampled").exists()
+    true = load_cameras(capture / "gt" / "cameras.json")
+    est = load_cameras(results / "poses" / "cameras.json")
+    assert len(est) == diag["registered"] and all(c.width == 192 and c.height == 144 for c in est.frames)
+    gt = read_obj(capture / "gt" / "mesh.obj")
+    err = metrics.pose_errors(est, true)
+    size = float(np.max(gt.bbox()[1] - gt.bbox()[0]))
+    print(f"\nretry: {retry}, rotation {err['mean_rotation_deg']:.3f} deg, "  # noqa: T201
+          f"centre {100 * err['mean_center'] / size:.2f} % of the object")
+    # no focal length in these EXR files: SfM's is 1-2 % short, and the centres with it
+    assert err["mean_rotation_deg"] < 0.5
+    assert err["mean_center"] < 0.02 * size
+
+
 def test_sfm_outputs_follow_the_contract(synthetic_sfm):
     capture, results, diag = synthetic_sfm
     out = results / "poses"

@@ -377,7 +377,7 @@ def _iteration(st: _Stage, it: int, run: _Run, timer: _Timer) -> dict:
         g["lr"] = run.lr_texture(f)
     st.opt_geom.step()
     st.opt_tex.step()
-    if run.cameras is not None:
+    if run.cameras is not None and st.index >= int(settings.camera_first_stage):
         run.cameras.step(f)
     if run.imaging is not None:
         run.imaging.step(f)

@@ -146,7 +146,10 @@ class OptimizeSettings:
     (relative), ``camera_sigma_principal`` (fraction of the image size). Adam rates per step:
     ``camera_lr_rotation_deg``, ``camera_lr_translation`` (fraction of the scene size),
     ``camera_lr_focal`` (log focal), ``camera_lr_principal``; they follow the stage's
-    ``lr_scale`` and ``lr_decay`` like the other rates.
+    ``lr_scale`` and ``lr_decay`` like the other rates. ``camera_first_stage``: the cameras are
+    held through the coarse-to-fine stages before this one and stepped from it on (0: every
+    stage; 1 keeps the coarsest surface's shape errors out of the cameras: better for cameras
+    good to a few tenths of a pixel, worse for errors of a degree, docs/camera_refine.md).
     The camera's imaging (:mod:`recon.optimize.imaging`, DESIGN section 6): ``select_imaging``
     (after the material model, on the same held-out views) tries the terms of ``imaging_terms``
     (flash_offset, exposure, ambient, falloff, tone) and keeps each only where it pays off the
@@ -224,6 +227,7 @@ class OptimizeSettings:
     camera_lr_focal: float = 0.0005
     camera_lr_principal: float = 0.0002
     camera_align_iterations: int = 40
+    camera_first_stage: int = 0
     select_imaging: bool = False
     imaging_terms: tuple = ("flash_offset", "exposure", "ambient", "falloff", "tone")
     flash_offset: tuple | None = None
@@ -304,8 +308,9 @@ class OptimizeSettings:
             raise ValueError(f"select_min_gain must be >= 0, got {self.select_min_gain}")
         if self.refine_cameras not in CAMERA_MODES:
             raise ValueError(f"refine_cameras must be one of {CAMERA_MODES}, got {self.refine_cameras!r}")
-        if int(self.camera_align_iterations) < 0:
-            raise ValueError(f"camera_align_iterations must be >= 0, got {self.camera_align_iterations}")
+        for name in ("camera_align_iterations", "camera_first_stage"):
+            if int(getattr(self, name)) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         self.camera_prior()  # validates the camera prior's values
         for name in ("w_laplacian", "w_edge", "w_normal", "w_specular", "w_roughness", "w_camera"):
             if getattr(self, name) < 0:

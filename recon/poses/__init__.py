@@ -35,6 +35,10 @@ the settings (capture.yaml's ``light_intensity``) is written into ``cameras.json
    pose errors in tests). With a focal length prior (EXIF) its focal length is held at the
    prior and its own estimate weighted by their variances (``focal_refine``,
    :func:`~recon.poses.mapping.focal_with_prior`).
+   Small photos (long side under 400 px) whose first pass leaves more than 1 -
+   ``accept_fraction`` of the views out get a second pass of steps 1-4 on 2x enlarged SIFT
+   images (``sift_upsample_retry``), kept when it registers more views: at 192 x 144 SIFT
+   finds 200-300 features on some views of a smooth object, too few to place them.
 5. Undistortion of the linear EXRs, the masks and the clipped-pixel masks to the pinhole
    camera COLMAP derives (``pycolmap.undistort_camera``), by ``cv2.remap`` in float: the
    8-bit route of ``pycolmap.undistort_images`` would lose the linear data. A distortion that

@@ -60,7 +60,12 @@ def sift_upsample_factor(settings: PoseSettings, shape) -> int:
     """How much the SIFT images are enlarged: ``sift_upsample``, or with 0 (auto) 2 for images
     whose long side is under 400 px. Measured on a synthetic torus at 256 px (40 views): 38
     instead of 27 views registered, but ten times the matching time (78 s) and one view posed
-    8 degrees off; on blobs it changed nothing that mattered. Hence off by default."""
+    8 degrees off; on blobs it changed nothing that mattered. Hence off by default; but a
+    first pass on small photos that leaves views out is run again enlarged
+    (``sift_upsample_retry``): on a noise-free 192 x 144 blob orbit (32 views) 24 -> 32 views
+    registered and the pose errors halved (0.47 -> 0.25 degree), while on the noisy renders of
+    the test captures the enlarged pass split the model (so it is kept only when it registers
+    more views)."""
     if settings.sift_upsample > 0:
         return int(settings.sift_upsample)
     return 2 if max(shape) < 400 else 1

@@ -22,6 +22,9 @@ class PoseSettings:
     sift_encoding: str = "srgb"  # srgb | log: what SIFT sees (see sift_image)
     sift_upsample: int = 1  # enlarge the SIFT images by this factor; 0: auto (see sift_upsample_factor)
     max_num_features_upsampled: int = 2048  # feature cap on enlarged images (matching cost)
+    # small photos (sift_upsample_factor would enlarge them) whose first SfM pass leaves more than
+    # 1 - accept_fraction of the views out: SfM once more on enlarged images, kept if it registers more
+    sift_upsample_retry: bool = True
     peak_threshold: float = 0.001  # COLMAP's default 0.0067 finds too few on smooth objects
     highlight_factor: float = 4.0  # no features where luminance > this x the object's median (0: off)
     affine_features: bool = False  # affine-covariant SIFT + domain-size pooling (wide baselines)

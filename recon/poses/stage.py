@@ -8,7 +8,7 @@ import math
 import os
 import shutil
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +16,7 @@ import numpy as np
 from recon.io.atomic import atomic_dir, atomic_path
 from recon.io.cameras import Camera, CameraError, CameraSet, load_cameras, save_cameras
 from recon.io.images import read_exr
-from recon.poses.features import extract_and_match, write_sift_images
+from recon.poses.features import extract_and_match, sift_upsample_factor, write_sift_images
 from recon.poses.frame import object_frame, points_in_masks, rotate_cameras
 from recon.poses.inputs import focal_prior, image_names, linear_stems, read_masks
 from recon.poses.mapping import map_views, refine, rescale_model, silhouette_consistency, unregistered_reasons
@@ -182,6 +182,36 @@ def _copy_given_cameras(given: Path, dest: Path, given_intensity: float, light_i
 # ---------------------------------------------------------------------------------------------
 # Structure from motion
 # ---------------------------------------------------------------------------------------------
+def _features_and_mapping(linear_dir: Path, work: Path, stems: list[str], settings: PoseSettings, masks: dict,
+                          f_prior: float | None, timings: dict) -> tuple:
+    """SIFT images, features, matches and the mapping trials in ``work``; returns (model, all
+    models, trials, chosen trial, weak views dropped, SIFT enlargement, view shape, database,
+    matcher), ``timings`` updated."""
+    t0 = time.perf_counter()
+    images = work / "images"
+    images.mkdir(parents=True)
+    feature_masks = work / "feature_masks" if settings.highlight_factor > 0 else None
+    shapes, up = write_sift_images(linear_dir, stems, images, masks, feature_masks, settings.highlight_factor,
+                                   settings.sift_encoding, settings)
+    shape = shapes[stems[0]]
+    timings["sift_images_s"] = time.perf_counter() - t0
+    log.info("SfM on %d views of %dx%d (SIFT on %dx enlarged images), focal prior %s", len(stems), shape[1],
+             shape[0], up, f"{f_prior:.1f} px" if f_prior else "none")
+    # COLMAP works at the SIFT images' size; the model is scaled back after refinement
+    f_sift = f_prior * up if f_prior else None
+    shape_sift = (shape[0] * up, shape[1] * up)
+    db = work / "database.db"
+    timings.update(extract_and_match(db, images, len(stems), settings, f_sift, shape_sift, feature_masks,
+                                     max_features=settings.max_num_features if up == 1
+                                     else min(settings.max_num_features, settings.max_num_features_upsampled)))
+    matcher = (timings.pop("matcher"), timings.pop("matching"))
+    t0 = time.perf_counter()
+    rec, models, trials, trial, weak = map_views(db, images, work / "mapping", settings, len(stems), shape_sift,
+                                                 f_sift, masks, up)
+    timings["map_s"] = time.perf_counter() - t0
+    return rec, models, trials, trial, weak, up, shape, db, matcher
+
+
 def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | None,
          linear_json: Path | None) -> dict:
     timings = {}
@@ -195,35 +225,35 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
         )
     light_intensity = DEFAULT_LIGHT_INTENSITY if settings.light_intensity is None else settings.light_intensity
 
-    # ---- features and matching ----
-    t0 = time.perf_counter()
-    work = tmp / "work"
-    images = work / "images"
-    images.mkdir(parents=True)
-    masks = read_masks(masks_dir, stems)
-    feature_masks = work / "feature_masks" if settings.highlight_factor > 0 else None
-    shapes, up = write_sift_images(linear_dir, stems, images, masks, feature_masks, settings.highlight_factor,
-                                   settings.sift_encoding, settings)
-    shape = shapes[stems[0]]
-    timings["sift_images_s"] = time.perf_counter() - t0
     f_prior = focal_prior(linear_json, stems)
-    log.info("SfM on %d views of %dx%d (SIFT on %dx enlarged images), focal prior %s", n, shape[1], shape[0],
-             up, f"{f_prior:.1f} px" if f_prior else "none")
-    # COLMAP works at the SIFT images' size; the model is scaled back after refinement
+    masks = read_masks(masks_dir, stems)
+    work = tmp / "work"
+    rec, models, trials, trial, weak, up, shape, db, matcher = _features_and_mapping(
+        linear_dir, work, stems, settings, masks, f_prior, timings)
+    n_reg = len(rec.reg_image_ids()) if rec is not None else 0
+    retry = None
+    if settings.sift_upsample_retry and up == 1 and n_reg < settings.accept_fraction * n \
+            and sift_upsample_factor(replace(settings, sift_upsample=0), shape) > 1:
+        # small photos: too few SIFT features on some views; once more on enlarged images
+        # (sift_upsample_factor), kept when it registers more views
+        log.info("%d of %d views registered; SfM again with SIFT on enlarged images", n_reg, n)
+        t_retry = {}
+        again = _features_and_mapping(linear_dir, tmp / "work_upsampled", stems,
+                                      replace(settings, sift_upsample=0), masks, f_prior, t_retry)
+        n_again = len(again[0].reg_image_ids()) if again[0] is not None else 0
+        retry = {"registered_before": n_reg, "registered_upsampled": n_again, "kept": n_again > n_reg,
+                 "seconds": sum(t_retry.values())}
+        timings["retry_upsampled_s"] = retry["seconds"]
+        if n_again > n_reg:
+            shutil.rmtree(work, ignore_errors=True)
+            (tmp / "work_upsampled").rename(work)
+            rec, models, trials, trial, weak, up, shape, db, matcher = again
+            db = work / db.name
+        else:
+            shutil.rmtree(tmp / "work_upsampled", ignore_errors=True)
     f_sift = f_prior * up if f_prior else None
     shape_sift = (shape[0] * up, shape[1] * up)
-    db = work / "database.db"
-    timings.update(extract_and_match(db, images, n, settings, f_sift, shape_sift, feature_masks,
-                                     max_features=settings.max_num_features if up == 1
-                                     else min(settings.max_num_features, settings.max_num_features_upsampled)))
-    matcher = timings.pop("matcher")
-    matching = timings.pop("matching")
-
-    # ---- mapping ----
-    t0 = time.perf_counter()
-    rec, models, trials, trial, weak = map_views(db, images, work / "mapping", settings, n, shape_sift, f_sift,
-                                                 masks, up)
-    timings["map_s"] = time.perf_counter() - t0
+    matcher, matching = matcher
 
     registered = set()
     if rec is not None:
@@ -331,6 +361,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
         "matcher": matcher,
         "matching": matching,
         "sift_upsample": up,
+        "sift_upsample_retry": retry,
         "mapper": settings.mapper,
         "trials": trials,
         "chosen_trial": trial,

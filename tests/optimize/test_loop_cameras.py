@@ -185,3 +185,26 @@ def test_select_decides_on_held_out_views_and_the_report_shows_it(capture, tmp_p
     assert m["selection"]["accepted"] == info["refined"]
     page = render_page(Page(capture="c", preset=None, camera_refinement=m))
     assert "Cameras refined by the renderer" in page and all(f"<td>{v}</td>" in page for v in m["corrections"]["views"])
+
+
+def test_cameras_held_before_camera_first_stage(capture, tmp_path):
+    """``camera_first_stage``: the cameras are held through the stages before it (a value past
+    the last stage holds them throughout: output cameras = input), stepped from it on; it is
+    refused negative."""
+    with pytest.raises(ValueError, match="camera_first_stage"):
+        OptimizeSettings(camera_first_stage=-1)
+    images, masks = _inputs(capture)
+    cams_json, _ = _sfm_cameras(capture, tmp_path / "poses", deg=1.5, seed=2)
+    stages = (StageSettings(0.14, 32, 6), StageSettings(0.12, 32, 6))
+    given = load_cameras(cams_json).by_stem()
+    for first, moves in ((2, False), (1, True)):
+        s = _settings(refine_cameras="on", stages=stages, camera_first_stage=first, camera_lr_rotation_deg=0.1)
+        out = tmp_path / f"first{first}"
+        summary = optimize_capture(images, masks, None, cams_json, capture / "init.obj", out, s, progress=False)
+        views = summary["camera_refinement"]["corrections"]["views"]
+        assert len(views) == 8
+        got = load_cameras(out / "cameras.json").by_stem()
+        for stem, c in got.items():
+            assert np.all(np.isfinite(c.world_to_camera))
+            assert (not np.allclose(c.world_to_camera, given[stem].world_to_camera, atol=1e-9)) == moves, (first, stem)
+        assert all((v["rotation_deg"] > 1e-6) == moves for v in views.values()), (first, views)
