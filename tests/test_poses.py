@@ -359,8 +359,8 @@ def test_small_photos_get_a_second_pass_on_enlarged_images(tmp_path_factory):
     capture = synth_capture(tmp_path_factory.getbasetemp(), n_views=32, width=192, height=144, noise=False)
     results = tmp_path_factory.mktemp("sfm_small")
     linear, masks = linearize_and_mask(capture, results)
-    diag = rp.run_poses(linear, results / "poses", _capture_settings(capture, num_threads=1), masks_dir=masks,
-                        linear_json=linear / "linear.json")
+    diag = rp.run_poses(linear, results / "poses", _capture_settings(capture, num_threads=1, sift_upsample_retry=True),
+                        masks_dir=masks, linear_json=linear / "linear.json")
     retry = diag["sift_upsample_retry"]
     assert retry is not None and retry["registered_before"] < 0.95 * 32, retry
     assert retry["kept"] and retry["registered_upsampled"] > retry["registered_before"], retry

@@ -24,7 +24,7 @@ class PoseSettings:
     max_num_features_upsampled: int = 2048  # feature cap on enlarged images (matching cost)
     # small photos (sift_upsample_factor would enlarge them) whose first SfM pass leaves more than
     # 1 - accept_fraction of the views out: SfM once more on enlarged images, kept if it registers more
-    sift_upsample_retry: bool = True
+    sift_upsample_retry: bool = False  # measured both ways: config/README.md
     peak_threshold: float = 0.001  # COLMAP's default 0.0067 finds too few on smooth objects
     highlight_factor: float = 4.0  # no features where luminance > this x the object's median (0: off)
     affine_features: bool = False  # affine-covariant SIFT + domain-size pooling (wide baselines)
