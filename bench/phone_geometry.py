@@ -29,16 +29,14 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from recon.synth.capture import SynthSettings, make_capture  # noqa: E402
+from tabletop_e2e import snakemake  # noqa: E402  (the workflow run of the sibling bench)
 
 log = logging.getLogger("bench.phone_geometry")
 
@@ -87,19 +85,6 @@ def run_folder(root: Path, run: str, cap: Path, overrides: dict, preset: str) ->
     if not (d / "capture.yaml").is_file() or (d / "capture.yaml").read_text() != text:
         (d / "capture.yaml").write_text(text)
     return d
-
-
-def snakemake(captures: Path, results: Path, targets: list[str], preset: str) -> float:
-    t0 = time.perf_counter()
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_WAIT_POLICY": "PASSIVE"}
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--keep-going", "--config", f"captures={captures}",
-           f"results={results}", f"preset={preset}", "--", *targets]
-    r = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
-    results.mkdir(parents=True, exist_ok=True)
-    (results / "snakemake.log").write_text(r.stdout + r.stderr)
-    if r.returncode != 0:
-        log.warning("snakemake failed (%s); see %s", r.returncode, results / "snakemake.log")
-    return time.perf_counter() - t0
 
 
 def measure(res: Path) -> dict:

@@ -75,6 +75,7 @@ def snakemake(captures: Path, results: Path, targets: list[str], preset: str) ->
     cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--keep-going", "--config", f"captures={captures}",
            f"results={results}", f"preset={preset}", "--", *targets]
     r = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
+    results.mkdir(parents=True, exist_ok=True)  # absent when Snakemake failed before any job
     (results / "snakemake.log").write_text(r.stdout + r.stderr)
     if r.returncode != 0:
         log.warning("snakemake failed (%s); see %s", r.returncode, results / "snakemake.log")
