@@ -54,7 +54,8 @@ def make(root: Path, name: str, args) -> Path:
     cap = root / "captures" / name
     if not (cap / "cameras.json").is_file():
         kw = dict(object="blob", n_views=args.views, width=args.width, height=args.height, format="exr",
-                  spp=args.spp, seed=args.seed, write_masks=True, write_cameras=True, write_gt_linear=False)
+                  spp=args.spp, seed=args.seed, write_masks=True, write_cameras=True, write_gt_linear=False,
+                  scene=args.scene)
         if name == "phone":
             kw.update(PHONE)
         make_capture(cap, SynthSettings(**kw))
@@ -126,6 +127,8 @@ def main(argv=None) -> int:
     p.add_argument("--spp", type=int, default=32)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--runs", default=",".join(RUNS))
+    p.add_argument("--scene", default="void", choices=("void", "tabletop"),
+                   help="tabletop: the object standing on a lit table (cameras and masks still given)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     root = args.out

@@ -558,6 +558,13 @@ def capture_is_ldr(images) -> bool | None:
     return None
 
 
+def candidate_terms(settings, ldr: bool | None) -> tuple[tuple, bool]:
+    """The terms of ``imaging_terms`` to try and whether the tone curve is among them
+    (``tone_curve``: fit, identity, or auto = only for JPEG/PNG photos)."""
+    tone = settings.tone_curve == "fit" or (settings.tone_curve == "auto" and bool(ldr))
+    return tuple(t for t in settings.imaging_terms if tone or t != "tone"), tone
+
+
 def run_imaging_selection(settings, mesh, maps: dict, material: MaterialModel, covered: np.ndarray, views, heldout,
                           light: float, tone_scale: float, images, train_set=None,
                           heldout_set=None) -> tuple[dict, MaterialModel, dict]:
@@ -565,11 +572,8 @@ def run_imaging_selection(settings, mesh, maps: dict, material: MaterialModel, c
     chosen imaging terms, the material model, and the evidence for summary.json.
     ``train_set``/``heldout_set``: the views at ``select_image_size`` with the cameras the model
     goes with (refined by the optimizer, issue 17); default ``views.at(size)``/``heldout.at(size)``."""
-    terms = tuple(settings.imaging_terms)
     ldr = capture_is_ldr(images)
-    tone = settings.tone_curve == "fit" or (settings.tone_curve == "auto" and bool(ldr))
-    if not tone:
-        terms = tuple(t for t in terms if t != "tone")
+    terms, tone = candidate_terms(settings, ldr)
     size = int(settings.select_image_size)
     log.info("imaging model selection on %d held-out views: %s", len(heldout), ", ".join(terms))
     train_set = train_set if train_set is not None else views.at(size)
@@ -705,10 +709,7 @@ def select_for_loop(settings, mesh, maps: dict, material: MaterialModel, covered
     """The imaging selection on the coarse model (``imaging_loop: select``): (ImagingParams of
     the chosen terms, or None when the ideal formation is kept and no flash offset is given;
     the evidence)."""
-    terms = tuple(settings.imaging_terms)
-    tone = settings.tone_curve == "fit" or (settings.tone_curve == "auto" and bool(ldr))
-    if not tone:
-        terms = tuple(t for t in terms if t != "tone")
+    terms, tone = candidate_terms(settings, ldr)
     fit, ev = select_imaging(mesh, Fit(material, maps, float("nan")), covered, train_set, heldout_set, light,
                              tone_scale, settings.imaging_selection_settings(), candidates=terms,
                              offset_given=settings.flash_offset, spp=int(settings.select_spp),
