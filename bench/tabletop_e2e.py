@@ -85,9 +85,15 @@ def snakemake(captures: Path, results: Path, targets: list[str], preset: str) ->
 # ---- geometry ----
 def visible_samples(gt: Mesh, cams: CameraSet, n: int, rng) -> np.ndarray:
     """Points on the true surface (area-uniform) that at least one camera sees."""
+    p = gt.sample_surface(n, rng)
+    return p[seen_by(p, gt, cams)]
+
+
+def seen_by(p: np.ndarray, gt: Mesh, cams: CameraSet) -> np.ndarray:
+    """(N,) bool: which points ``p`` on (or within 0.1 % of) the true surface some camera sees
+    (in its image, nothing of the true mesh in front)."""
     import open3d as o3d
 
-    p = gt.sample_surface(n, rng)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(gt.v_pos.astype(np.float32)), o3d.core.Tensor(gt.t_pos_idx.astype(np.uint32)))
     lo, hi = gt.bbox()
@@ -105,7 +111,7 @@ def visible_samples(gt: Mesh, cams: CameraSet, n: int, rng) -> np.ndarray:
         rays = np.concatenate([np.broadcast_to(c.center, p.shape), d / dist[:, None]], 1).astype(np.float32)
         t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
         seen |= inimg & (t >= dist - eps)
-    return p[seen]
+    return seen
 
 
 def geometry(mesh: Mesh, gt: Mesh, visible: np.ndarray, sim, rng, plane, n: int = 20000) -> dict:
