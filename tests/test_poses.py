@@ -16,7 +16,7 @@ from recon.io.cameras import Camera, CameraSet, intrinsics, load_cameras, look_a
 from recon.io.images import read_exr, read_ldr, read_mask, srgb_to_linear, write_exr, write_mask, write_png
 from recon.io.mesh import Mesh, read_obj, write_ply
 from recon.poses.frame import rotate_cameras
-from recon.poses.inputs import image_names
+from recon.poses.inputs import image_names, prior_focal
 from recon.poses.mapping import (_drop_weak_views, anchored_views, focal_sigma, focal_with_prior, mapper_sequence,
                                  refine, rescale_model)
 from recon.poses.undistort import distortion_shift, pinhole_camera, remap, undistort_maps
@@ -170,6 +170,23 @@ def test_focal_prior_from_linear_json(tmp_path):
     p.write_text(json.dumps({"images": {"a": {"focal_length_px": None}}}))
     assert rp.focal_prior(p, ["a"]) is None
     assert rp.focal_prior(None, ["a"]) is None
+
+
+def test_focal_prior_from_a_calibration(tmp_path):
+    """``poses.focal_px`` (pixels of the photos at their full size) replaces the EXIF prior and
+    is scaled to the linear views when linearize reduced the photos; bad values name the key."""
+    p = tmp_path / "linear.json"
+    p.write_text(json.dumps({"width": 800, "height": 600, "source_width": 4000, "source_height": 3000,
+                             "images": {"a": {"focal_length_px": 700.0}, "b": {"focal_length_px": 700.0}}}))
+    assert prior_focal(rp.PoseSettings(), p, ["a", "b"]) == (700.0, "EXIF")
+    f, source = prior_focal(rp.PoseSettings(focal_px=3300.0), p, ["a", "b"])
+    assert source == "poses.focal_px" and f == pytest.approx(660.0, rel=1e-12)  # 3300 * 800 / 4000
+    p.write_text(json.dumps({"images": {"a": {}}}))  # no sizes recorded: taken as it is; no EXIF
+    assert prior_focal(rp.PoseSettings(focal_px=512), p, ["a"]) == (512.0, "poses.focal_px")
+    assert prior_focal(rp.PoseSettings(), p, ["a"]) == (None, None)
+    for bad in (0, -5.0, float("nan"), float("inf"), True, "512"):
+        with pytest.raises(ValueError, match="focal_px"):
+            rp.PoseSettings(focal_px=bad)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -68,6 +68,31 @@ def focal_prior(linear_json: Path | None, stems: list[str]) -> float | None:
     return f
 
 
+def given_focal(linear_json: Path | None, focal_px: float) -> float:
+    """``focal_px`` (pixels of the photos at their full size) in pixels of the linear views: scaled
+    by their width over the photos' (``linear.json``'s ``width`` / ``source_width``; the
+    linearize stage may reduce large photos)."""
+    data = {}
+    if linear_json is not None and Path(linear_json).is_file():
+        try:
+            data = json.loads(Path(linear_json).read_text())
+        except json.JSONDecodeError as e:
+            raise PoseError(f"{linear_json}: not valid JSON ({e}); rerun the linearize stage") from e
+    w, w0 = data.get("width"), data.get("source_width")
+    if isinstance(w, (int, float)) and isinstance(w0, (int, float)) and w > 0 and w0 > 0:
+        return float(focal_px) * float(w) / float(w0)
+    return float(focal_px)
+
+
+def prior_focal(settings, linear_json: Path | None, stems: list[str]) -> tuple[float | None, str | None]:
+    """(the focal length prior in pixels of the linear views, its source): ``poses.focal_px``
+    (a calibration) when set, else the photos' EXIF (:func:`focal_prior`), else (None, None)."""
+    if settings.focal_px is not None:
+        return given_focal(linear_json, settings.focal_px), "poses.focal_px"
+    f = focal_prior(linear_json, stems)
+    return f, ("EXIF" if f is not None else None)
+
+
 def image_names(linear_json: Path | None, stems: list[str]) -> dict[str, str]:
     """The capture image path (``images/<file>``) of each stem, as cameras.json records it."""
     entries = _linear_entries(linear_json)

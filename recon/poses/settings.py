@@ -57,6 +57,9 @@ class PoseSettings:
     # the focal length with a prior (EXIF): auto (the bundle adjustment's estimate and the prior
     # weighted by their variances), fixed (held at the prior), free (the prior only starts it)
     focal_refine: str = "auto"
+    # a known focal length in pixels of the photos in images/ (their full size), e.g. from a
+    # calibration: the prior instead of EXIF's (weight: focal_prior_sigma; fixed holds it)
+    focal_px: float | None = None
     focal_prior_sigma: float = 0.01  # the prior's relative standard deviation (auto)
     focal_sigma_scale: float = 2.0  # the adjustment's standard deviation times this (auto; see mapping)
     seed: int = 0
@@ -81,6 +84,11 @@ class PoseSettings:
             raise ValueError(f"mapper must be auto, incremental, incremental_fixed or global, got {self.mapper!r}")
         if self.focal_refine not in ("auto", "fixed", "free"):
             raise ValueError(f"focal_refine must be auto, fixed or free, got {self.focal_refine!r}")
+        if self.focal_px is not None:
+            value = self.focal_px
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                raise ValueError(f"focal_px must be a positive number of pixels (the photos' focal length), got {value!r}")
+            object.__setattr__(self, "focal_px", float(value))
         if not (isinstance(self.focal_prior_sigma, (int, float)) and 0 < self.focal_prior_sigma < 1):
             raise ValueError(f"focal_prior_sigma must be in (0, 1), got {self.focal_prior_sigma!r}")
         if not (isinstance(self.focal_sigma_scale, (int, float)) and 0 < self.focal_sigma_scale < 1e6):

@@ -18,7 +18,7 @@ from recon.io.cameras import Camera, CameraError, CameraSet, load_cameras, save_
 from recon.io.images import read_exr
 from recon.poses.features import extract_and_match, sift_upsample_factor, write_sift_images
 from recon.poses.frame import object_frame, points_in_masks, rotate_cameras
-from recon.poses.inputs import focal_prior, image_names, linear_stems, read_masks
+from recon.poses.inputs import image_names, linear_stems, prior_focal, read_masks
 from recon.poses.mapping import map_views, refine, rescale_model, silhouette_consistency, unregistered_reasons
 from recon.poses.settings import PoseError, PoseSettings
 from recon.poses.undistort import pinhole_camera, undistort_maps, undistort_view
@@ -225,7 +225,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
         )
     light_intensity = DEFAULT_LIGHT_INTENSITY if settings.light_intensity is None else settings.light_intensity
 
-    f_prior = focal_prior(linear_json, stems)
+    f_prior, f_source = prior_focal(settings, linear_json, stems)
     masks = read_masks(masks_dir, stems)
     work = tmp / "work"
     rec, models, trials, trial, weak, up, shape, db, matcher = _features_and_mapping(
@@ -356,7 +356,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
         "silhouette_consistency": sil,
         "camera": {"model": colmap_cam.model_name, "params": list(map(float, colmap_cam.params)),
                    "width": colmap_cam.width, "height": colmap_cam.height,
-                   "focal_prior_px": f_prior},
+                   "focal_prior_px": f_prior, "focal_prior_source": f_source},
         "pinhole": {"width": pinhole.width, "height": pinhole.height, "K": K.tolist()},
         "matcher": matcher,
         "matching": matching,
