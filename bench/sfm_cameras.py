@@ -42,11 +42,11 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
 from camera_refine import object_frame  # noqa: E402  (the sibling bench's diagnostic)
-from tabletop_e2e import seen_by, snakemake  # noqa: E402
+from tabletop_e2e import snakemake  # noqa: E402
 
 from recon.io.cameras import load_cameras  # noqa: E402
 from recon.io.mesh import Mesh, read_mesh  # noqa: E402
-from recon.metrics import Similarity, chamfer, distance_to_mesh  # noqa: E402
+from recon.metrics import Similarity, chamfer, seen_chamfer  # noqa: E402
 from recon.synth.capture import PRESETS  # noqa: E402
 
 log = logging.getLogger("bench.sfm_cameras")
@@ -107,7 +107,7 @@ def measure(res: Path, cap: Path) -> dict:
     v = sim.apply(mesh.v_pos)
     v_obj, frame = object_frame(v, mesh, gt_mesh)
     obj = chamfer(Mesh(v_obj, mesh.t_pos_idx), gt_mesh, n_samples=100_000, seed=0)
-    seen = seen_accuracy(Mesh(v, mesh.t_pos_idx), gt_mesh, gt_cams)
+    seen = seen_chamfer(Mesh(v, mesh.t_pos_idx), gt_mesh, gt_cams)
     cam = m.get("camera_refinement") or {}
     pe = mm.get("pose_errors") or {}
     lo, hi = gt_mesh.bbox()
@@ -120,28 +120,6 @@ def measure(res: Path, cap: Path) -> dict:
             "camera_selection": cam.get("selection"),
             "poses_seconds": m["timings"]["stages"].get("poses"),
             "optimize_seconds": s.get("wall_seconds")}
-
-
-def seen_accuracy(rec: Mesh, gt: Mesh, cams, n: int = 100_000) -> dict:
-    """Accuracy and completeness over the part of the true surface some camera sees (the
-    tabletop's views from above never see under the object's bulge, where the surface is a
-    guess that no camera can correct and dominates the whole-surface mean): reconstruction
-    samples whose closest true point is seen, and seen true samples; unit bounding box."""
-    import open3d as o3d
-
-    lo, hi = gt.bbox()
-    unit = float(np.max(hi - lo))
-    rng = np.random.default_rng(0)
-    p = rec.sample_surface(n, rng)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(gt.v_pos.astype(np.float32)), o3d.core.Tensor(gt.t_pos_idx.astype(np.uint32)))
-    q = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))["points"].numpy().astype(np.float64)
-    keep = seen_by(q, gt, cams)
-    g = gt.sample_surface(n, rng)
-    g = g[seen_by(g, gt, cams)]
-    return {"accuracy_seen": float(np.linalg.norm(p[keep] - q[keep], axis=1).mean() / unit),
-            "completeness_seen": float(distance_to_mesh(rec, g).mean() / unit),
-            "seen_fraction": float(keep.mean())}
 
 
 def table(results: dict) -> str:

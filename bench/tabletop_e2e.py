@@ -53,7 +53,7 @@ sys.path.insert(0, str(REPO))
 from recon.io.cameras import Camera, CameraSet, load_cameras, look_at  # noqa: E402
 from recon.io.images import read_exr, read_mask  # noqa: E402
 from recon.io.mesh import Mesh, read_mesh, read_obj  # noqa: E402
-from recon.metrics import align_cameras, distance_to_mesh, image_rmse, pose_errors  # noqa: E402
+from recon.metrics import align_cameras, distance_to_mesh, image_rmse, pose_errors, seen_by  # noqa: E402
 from recon.poses.frame import rotate_cameras  # noqa: E402
 from recon.support import load_plane  # noqa: E402
 from recon.synth.capture import PRESETS, make_capture  # noqa: E402
@@ -87,31 +87,6 @@ def visible_samples(gt: Mesh, cams: CameraSet, n: int, rng) -> np.ndarray:
     """Points on the true surface (area-uniform) that at least one camera sees."""
     p = gt.sample_surface(n, rng)
     return p[seen_by(p, gt, cams)]
-
-
-def seen_by(p: np.ndarray, gt: Mesh, cams: CameraSet) -> np.ndarray:
-    """(N,) bool: which points ``p`` on (or within 0.1 % of) the true surface some camera sees
-    (in its image, nothing of the true mesh in front)."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(gt.v_pos.astype(np.float32)), o3d.core.Tensor(gt.t_pos_idx.astype(np.uint32)))
-    lo, hi = gt.bbox()
-    eps = 1e-3 * float(np.max(hi - lo))
-    seen = np.zeros(len(p), bool)
-    for c in cams:
-        x = p @ c.world_to_camera[:3, :3].T + c.world_to_camera[:3, 3]
-        z = x[:, 2]
-        uv = x @ c.K.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u, v = uv[:, 0] / z, uv[:, 1] / z
-        inimg = (z > 0) & (u >= 0) & (u < c.width) & (v >= 0) & (v < c.height)
-        d = p - c.center
-        dist = np.linalg.norm(d, axis=1)
-        rays = np.concatenate([np.broadcast_to(c.center, p.shape), d / dist[:, None]], 1).astype(np.float32)
-        t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        seen |= inimg & (t >= dist - eps)
-    return seen
 
 
 def geometry(mesh: Mesh, gt: Mesh, visible: np.ndarray, sim, rng, plane, n: int = 20000) -> dict:

@@ -180,3 +180,51 @@ def test_image_rmse_errors():
     bad[0, 0, 0] = np.nan
     with pytest.raises(metrics.MetricsError, match="NaN"):
         metrics.image_rmse(bad, a, ~m, m)
+
+
+def test_seen_by_cameras_above_and_occlusion():
+    """Points a camera sees: in its image, in front of it, nothing of the mesh between. A ring
+    of cameras 34 degrees above a sphere's equator (7.2 radii away) sees it down to
+    about 48 degrees below the equator (the cap a camera sees from distance D has angular radius
+    arccos(r / D)): 87 % of the area; the bottom pole is seen by none."""
+    gt = _sphere(radius=0.5)
+    frames = [Camera(f"images/{i:04d}.png", 64, 48, intrinsics(64, 48, 40),
+                     look_at([3 * np.cos(a), 3 * np.sin(a), 2.0], [0, 0, 0]))
+              for i, a in enumerate(np.linspace(0, 2 * np.pi, 24, endpoint=False))]
+    above = CameraSet(tuple(frames))
+    poles = np.array([[0, 0, 0.5], [0, 0, -0.5]])
+    assert metrics.seen_by(poles, gt, above).tolist() == [True, False]
+    one = CameraSet((Camera("images/a.png", 64, 48, intrinsics(64, 48, 40), look_at([3, 0, 0], [0, 0, 0])),))
+    a = np.radians(70)  # 70 degrees from the camera's direction: before the horizon at arccos(0.5 / 3) = 80
+    near_far = np.array([[0.5, 0, 0], [-0.5, 0, 0], [0.5 * np.cos(a), 0, 0.5 * np.sin(a)], [0, 0, 0.5]])
+    # facing it, behind the sphere, near its rim, beyond the horizon (the top pole from the side)
+    assert metrics.seen_by(near_far, gt, one).tolist() == [True, False, True, False]
+    assert not metrics.seen_by(np.array([[0.0, 0.0, 5.0]]), gt, one).any()  # outside its image
+    same = metrics.seen_chamfer(gt, gt, above, n_samples=20_000)
+    assert same["accuracy_seen"] < 1e-6 and same["completeness_seen"] < 1e-6
+    assert same["seen_fraction"] == pytest.approx(0.87, abs=0.03)
+
+
+def test_seen_chamfer_leaves_out_what_no_camera_sees():
+    """A reconstruction wrong only under the object (the bottom cap pushed down by 20 % of the
+    unit) is wrong in chamfer's whole-surface numbers and right over the surface the cameras
+    above see; a similarity is applied as in chamfer."""
+    gt = _sphere(radius=0.5)
+    frames = [Camera(f"images/{i:04d}.png", 64, 48, intrinsics(64, 48, 40),
+                     look_at([3 * np.cos(a), 3 * np.sin(a), 2.0], [0, 0, 0]))
+              for i, a in enumerate(np.linspace(0, 2 * np.pi, 24, endpoint=False))]
+    above = CameraSet(tuple(frames))
+    v = gt.v_pos.copy()
+    v[v[:, 2] < -0.45, 2] -= 0.2
+    rec = Mesh(v, gt.t_pos_idx)
+    whole = metrics.chamfer(rec, gt, n_samples=50_000)
+    seen = metrics.seen_chamfer(rec, gt, above, n_samples=50_000)
+    assert whole["accuracy"] > 3e-3 and whole["completeness"] > 1e-3
+    assert seen["accuracy_seen"] < 0.05 * whole["accuracy"] and seen["completeness_seen"] < 1e-4
+    sim = metrics.Similarity(2.0, _random_rotation(np.random.default_rng(1)), np.array([0.3, -1.0, 2.0]))
+    moved = Mesh((rec.v_pos - sim.translation) @ sim.rotation / sim.scale, rec.t_pos_idx)  # sim maps it back
+    again = metrics.seen_chamfer(moved, gt, above, similarity=sim, n_samples=50_000)
+    assert again["accuracy_seen"] == pytest.approx(seen["accuracy_seen"], abs=2e-5)
+    with pytest.raises(metrics.MetricsError, match="no camera"):
+        far = CameraSet((Camera("images/a.png", 64, 48, intrinsics(64, 48, 40), look_at([0, 0, 9], [0, 0, 20])),))
+        metrics.seen_chamfer(gt, gt, far, n_samples=1000)

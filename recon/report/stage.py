@@ -44,7 +44,7 @@ from recon.io.atomic import atomic_dir
 from recon.io.cameras import CameraSet, load_cameras
 from recon.io.images import linear_to_srgb, write_png
 from recon.io.mesh import Mesh
-from recon.metrics import MetricsError, Similarity, chamfer, pose_errors
+from recon.metrics import MetricsError, Similarity, chamfer, pose_errors, seen_chamfer
 from recon.report import gt as gtm
 from recon.report import html as page_html
 from recon.report import plots
@@ -358,6 +358,12 @@ def make_report(
         for key in ("chamfer", "accuracy", "completeness", "image_rmse"):
             if _positive_or_zero(metrics["metrics"].get(key)):
                 page.cards.append((f"gt {key}", f"{metrics['metrics'][key]:.4g}"))
+        seen = metrics["metrics"].get("seen_fraction")
+        if _positive_or_zero(seen) and seen < 0.99:  # part of the truth no camera sees
+            for key in ("accuracy_seen", "completeness_seen"):
+                if _positive_or_zero(metrics["metrics"].get(key)):
+                    page.cards.append((f"gt {key.replace('_seen', '')} over the seen {100 * seen:.0f} %",
+                                       f"{metrics['metrics'][key]:.4g}"))
         if metrics["optimize"]["final_loss"] is not None and math.isfinite(metrics["optimize"]["final_loss"]):
             page.cards.append(("final loss", f"{metrics['optimize']['final_loss']:.4g}"))
         if stages:
@@ -462,6 +468,12 @@ def _gt_metrics(model, cams: CameraSet, gt, light: float, settings: ReportSettin
                                seed=settings.seed))
         except MetricsError as e:
             skipped["geometry"] = f"ground-truth geometry metrics: {e}"
+        if gt.cameras is not None and "geometry" not in skipped:
+            try:  # the same over the surface the true cameras see (a tabletop object's underside: none)
+                out.update(seen_chamfer(model.mesh, gt.mesh, gt.cameras, similarity=sim,
+                                        n_samples=settings.chamfer_samples, seed=settings.seed))
+            except MetricsError as e:
+                skipped["geometry_seen"] = f"ground-truth metrics over the seen surface: {e}"
     if gt.cameras is not None:
         try:
             pe = pose_errors(cams, gt.cameras, sim)

@@ -78,8 +78,9 @@ def test_empty_log_still_makes_a_report(tmp_path, scene, fast_settings):
 def test_gt_metrics_zero_when_reconstruction_is_the_ground_truth(report):
     _, _, m = report
     g = m["metrics"]
-    for key in ("accuracy", "completeness", "chamfer"):
+    for key in ("accuracy", "completeness", "chamfer", "accuracy_seen", "completeness_seen"):
         assert 0.0 <= g[key] < 1e-6, key
+    assert 0.5 < g["seen_fraction"] <= 1.0  # the part of the sphere the true cameras see
     assert g["unit"] == pytest.approx(1.0)  # the sphere's bbox side (radius 0.5)
     assert g["image_views"] == "held-out"
     assert set(g["image_rmse_per_view"]) == {"h000"}
@@ -121,7 +122,7 @@ def test_partial_ground_truth_is_used_as_far_as_it_goes(tmp_path, scene, fast_se
     page = (tmp_path / "report" / "index.html").read_text()
     assert "Skipped" in page
     if case == "broken_mesh":
-        assert "accuracy" not in g and str(mesh_file) in skipped["geometry"]
+        assert "accuracy" not in g and "accuracy_seen" not in g and str(mesh_file) in skipped["geometry"]
         assert {"texture_rmse", "image_rmse"} <= set(skipped)
         assert g["pose_errors"]["max_center"] < 1e-9  # the cameras alone still give pose errors
         return
