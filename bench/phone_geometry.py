@@ -62,12 +62,14 @@ def make(root: Path, name: str, args) -> Path:
     return cap
 
 
-def run_folder(root: Path, run: str, cap: Path, overrides: dict, preset: str) -> Path:
-    """A capture folder for one run: the capture's files linked, its own capture.yaml."""
+def run_folder(root: Path, run: str, cap: Path, overrides: dict, preset: str, leave_out: tuple[str, ...] = ()
+               ) -> Path:
+    """A capture folder for one run: the capture's files linked (but ``leave_out``, e.g.
+    ``cameras.json`` so that SfM runs), its own capture.yaml."""
     d = root / "runs" / run
     d.mkdir(parents=True, exist_ok=True)
     for f in cap.iterdir():
-        if f.name in ("capture.yaml", "gt"):
+        if f.name in ("capture.yaml", "gt", *leave_out):
             continue
         link = d / f.name
         if not link.exists():

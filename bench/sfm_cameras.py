@@ -41,7 +41,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
-from camera_refine import object_frame  # noqa: E402  (the sibling bench's diagnostic)
+from camera_refine import object_frame  # noqa: E402  (the sibling benches' diagnostic and run folders)
+from phone_geometry import run_folder  # noqa: E402
 from tabletop_e2e import snakemake  # noqa: E402
 
 from recon.io.cameras import load_cameras  # noqa: E402
@@ -66,30 +67,6 @@ def make(root: Path, args) -> Path:
                                 write_gt_linear=False)
         make_capture(cap, s)
     return cap
-
-
-def run_folder(root: Path, run: str, cap: Path, preset: str) -> Path:
-    """A capture folder for one run: the capture's files linked (``cameras.json`` only for
-    ``given``), its own capture.yaml."""
-    import yaml
-
-    d = root / "runs" / run
-    d.mkdir(parents=True, exist_ok=True)
-    for f in cap.iterdir():
-        if f.name == "capture.yaml" or (f.name == "cameras.json" and run != "given"):
-            continue
-        link = d / f.name
-        if not link.exists():
-            link.symlink_to(f.resolve())
-    base = yaml.safe_load((cap / "capture.yaml").read_text()) if (cap / "capture.yaml").is_file() else {}
-    base = dict(base or {})
-    base["preset"] = preset
-    if RUNS[run]:
-        base["optimize"] = {**(base.get("optimize") or {}), **RUNS[run]}
-    text = yaml.safe_dump(base, sort_keys=False)
-    if not (d / "capture.yaml").is_file() or (d / "capture.yaml").read_text() != text:
-        (d / "capture.yaml").write_text(text)
-    return d
 
 
 def measure(res: Path, cap: Path) -> dict:
@@ -165,7 +142,7 @@ def main(argv=None) -> int:
     if unknown:
         p.error(f"unknown runs {sorted(unknown)}; choose from {sorted(RUNS)}")
     for r in runs:
-        run_folder(root, r, cap, args.preset)
+        run_folder(root, r, cap, RUNS[r], args.preset, leave_out=() if r == "given" else ("cameras.json",))
     results_dir = root / "results"
     for r in runs:  # one at a time: each run's wall times are its own
         log.info("run %s: %.0f s", r, snakemake(root / "runs", results_dir,
