@@ -229,6 +229,13 @@ class ImagingParams:
         g = self.gains()
         return 0.5 * (torch.log(g) / sigma).pow(2).mean()
 
+    def clone(self) -> "ImagingParams":
+        """An independent copy (same terms, same values)."""
+        out = ImagingParams(self.model, int(self.log_gain.shape[0]), self.length, self.tone_scale,
+                            None if self.offset_given is None else self.offset_given.numpy(), int(self.tone_raw.shape[0]),
+                            normalize_gains=self.normalize_gains)
+        return out.copy_from(self)
+
     def copy_from(self, other: "ImagingParams") -> "ImagingParams":
         with torch.no_grad():
             for name in ("offset_raw", "ambient_raw", "falloff_k", "tone_raw"):
@@ -401,17 +408,22 @@ def heldout_tiles(fit: ImagingFit, prob: ImagingProblem, light: float, s: Select
     sRGB-encoded values over their unclipped pixels (DESIGN section 5's image RMSE, on the white
     tiles); a model with per-view exposure first fits the held-out views' gains on their black
     tiles."""
-    maps = fit.material.maps
+    return heldout_tiles_under(fit.material.maps, fit.material.model, fit.params, prob, light, s, im)
+
+
+def heldout_tiles_under(maps: dict, material: MaterialModel, p: ImagingParams, prob: ImagingProblem, light: float,
+                        s: SelectionSettings, im: ImagingSettings) -> tuple[np.ndarray, float]:
+    """:func:`heldout_tiles` of given maps (of ``material``) under fitted imaging terms ``p``
+    (their own views' exposure gains are not used: the held-out views' are fitted here)."""
     with torch.no_grad():
         d = torch.tensor(np.asarray(maps["diffuse"], np.float32))
-        sp = None if fit.material.model.specular == "none" else torch.tensor(np.asarray(maps["specular"], np.float32))
+        sp = None if material.specular == "none" else torch.tensor(np.asarray(maps["specular"], np.float32))
         ro = torch.tensor(np.asarray(maps["roughness"], np.float32))
-    p = fit.params
-    ip = ImagingParams(fit.model, prob.shape[0], p.length, p.tone_scale,
+    ip = ImagingParams(p.model, prob.shape[0], p.length, p.tone_scale,
                        None if p.offset_given is None else p.offset_given.numpy(), p.tone_raw.shape[0],
                        normalize_gains=False)
     ip.copy_from(p)
-    if fit.model.has("exposure"):
+    if p.model.has("exposure"):
         with torch.no_grad():
             ip.log_gain.zero_()
         opt = torch.optim.Adam([ip.log_gain], lr=0.05)
@@ -601,13 +613,17 @@ class LoopImaging:
     rendered images (:meth:`apply`) and are refined with the shape (rate ``lr``; 0: fixed).
 
     ``params`` is None until the selection ran (the stages before it render the ideal formation).
+    ``shared_from``: another run's loop imaging whose choice this run takes instead of selecting
+    again (:meth:`share`): the camera refinement's paired runs, identical up to the selection.
     """
 
-    def __init__(self, lr: float, exposure_prior: float):
+    def __init__(self, lr: float, exposure_prior: float, shared_from: "LoopImaging | None" = None):
         self.lr = float(lr)
         self.exposure_prior = float(exposure_prior)
+        self.shared_from = shared_from
         self.params: ImagingParams | None = None
         self.evidence: dict | None = None
+        self.adopted: ImagingParams | None = None  # the values as chosen (before the loop refines them)
         self.opt: torch.optim.Optimizer | None = None
         self._r2: dict = {}
 
@@ -619,6 +635,7 @@ class LoopImaging:
         """Take the selection's fitted terms (None: nothing chosen, the ideal formation stays)."""
         self.evidence = evidence
         self.params = params
+        self.adopted = None if params is None else params.clone()
         self.opt = None
         if params is not None and self.lr > 0:
             groups = [g for g in params.groups(self.lr) if g["params"][0] is not params.offset_raw
@@ -627,6 +644,15 @@ class LoopImaging:
                 self.opt = torch.optim.Adam(groups)
                 for g in self.opt.param_groups:
                     g["base_lr"] = g["lr"]
+
+    def share(self) -> bool:
+        """Adopt ``shared_from``'s choice and its values as chosen, if it has chosen (False: it
+        has not, select anew)."""
+        src = self.shared_from
+        if src is None or src.evidence is None:
+            return False
+        self.adopt(None if src.adopted is None else src.adopted.clone(), {**src.evidence, "shared": True})
+        return True
 
     def lighting(self) -> dict:
         """Renderer keywords: ``flash_offset`` (camera coordinates) and ``ambient`` (fixed)."""
@@ -638,14 +664,16 @@ class LoopImaging:
         return {"flash_offset": None if off is None else off.numpy().astype(np.float64),
                 "ambient": 0.0 if amb is None else float(amb)}
 
-    def apply(self, img: torch.Tensor, idx) -> torch.Tensor:
-        """(B, h, w, 3) rendered radiance of the training views ``idx`` -> predicted photo."""
+    def apply(self, img: torch.Tensor, idx, gains: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, h, w, 3) rendered radiance of the training views ``idx`` -> predicted photo.
+        ``gains``: (B,) exposure gains of these images instead of the training views' (views
+        outside the training set, e.g. held-out views with their own fitted gains)."""
         p = self.params
         if p is None:
             return img
         m = p.model
         if m.has("exposure"):
-            g = p.gains()[torch.as_tensor(np.asarray(idx), dtype=torch.long)]
+            g = gains if gains is not None else p.gains()[torch.as_tensor(np.asarray(idx), dtype=torch.long)]
             img = img * g[:, None, None, None].to(img.dtype)
         if m.has("falloff"):
             h, w = int(img.shape[1]), int(img.shape[2])

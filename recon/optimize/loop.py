@@ -52,8 +52,9 @@ from recon.optimize.camera_refine import CameraRefinement, scene_extent
 from recon.optimize import regularizers as reg
 from recon.optimize.guard import SurfaceGuard, self_intersecting_faces
 from recon.optimize.largesteps import AdamUniform, LargeSteps
-from recon.optimize.imaging import (ImagingSettings, LoopImaging, capture_is_ldr, refit_under, run_imaging_selection,
-                                    select_for_loop)
+from recon.optimize.gbuffer import build_gbuffer
+from recon.optimize.imaging import (ImagingProblem, ImagingSettings, LoopImaging, capture_is_ldr, heldout_tiles_under,
+                                    refit_under, run_imaging_selection, select_for_loop)
 from recon.optimize.material import compare, heldout_error, model_from_settings, select_material
 from recon.optimize.params import TexturePyramid, albedo_param, constant_map, roughness_param
 from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, topology_report, unwrap
@@ -131,7 +132,8 @@ class _CameraFit:
     """A run's camera refinement: the training views' corrections and their optimizer, which
     live across the coarse-to-fine stages (the views are the same in every stage)."""
 
-    def __init__(self, views: Views, settings: OptimizeSettings):
+    def __init__(self, views: Views, settings: OptimizeSettings, first_stage: int = 0):
+        self.first_stage = int(first_stage)  # the cameras are held before this stage (camera_first_stage)
         self.ref = CameraRefinement(views.cameras, settings.camera_prior(), intrinsics=settings.camera_intrinsics)
         self.opt = torch.optim.Adam(self.ref.param_groups(), betas=settings.betas)
         for g in self.opt.param_groups:
@@ -377,7 +379,7 @@ def _iteration(st: _Stage, it: int, run: _Run, timer: _Timer) -> dict:
         g["lr"] = run.lr_texture(f)
     st.opt_geom.step()
     st.opt_tex.step()
-    if run.cameras is not None and st.index >= int(settings.camera_first_stage):
+    if run.cameras is not None and st.index >= run.cameras.first_stage:
         run.cameras.step(f)
     if run.imaging is not None:
         run.imaging.step(f)
@@ -521,15 +523,25 @@ def optimize_capture(
                         "formation", settings.imaging_loop)
         else:
             base = dataclasses.replace(base, ldr=capture_is_ldr(images))
+    camera_start = settings.camera_start(len(stages), settings.imaging_loop != "off" and heldout is not None)
+    if mode != "off":
+        log.info("camera refinement from stage %d (camera_first_stage: %s)", camera_start, settings.camera_first_stage)
     runs = []
     if mode in ("off", "select"):
         runs.append(base)
     if mode in ("on", "select"):
         # its own checkpoints beside the control's, so either run resumes alone
         runs.append(dataclasses.replace(base, ckpt_dir=ckpt_dir / "cameras" if mode == "select" else ckpt_dir,
-                                        fingerprint=fp + "+cameras", cameras=_CameraFit(views, settings)))
-    if settings.imaging_loop != "off" and heldout is not None:  # one per run: each selects on its own model
-        runs = [dataclasses.replace(r, imaging=LoopImaging(settings.imaging_loop_lr, ImagingSettings().exposure_prior)) for r in runs]
+                                        fingerprint=fp + "+cameras", cameras=_CameraFit(views, settings, camera_start)))
+    if settings.imaging_loop != "off" and heldout is not None:
+        # one per run; when the cameras are held until the selection has run, the runs are the
+        # same up to there and the refined run takes the control's choice: the held-out test then
+        # compares cameras, not two draws of the imaging selection
+        prior = ImagingSettings().exposure_prior
+        control = LoopImaging(settings.imaging_loop_lr, prior)
+        shared = control if mode == "select" and camera_start > int(settings.imaging_loop_stage) else None
+        runs = [dataclasses.replace(r, imaging=control if r.cameras is None else
+                                    LoopImaging(settings.imaging_loop_lr, prior, shared_from=shared)) for r in runs]
     done = [_execute(run, init, progress, callback) for run in runs]
 
     # ---- the cameras: held-out poses aligned, the refinement selected ----
@@ -541,7 +553,7 @@ def optimize_capture(
             aligned[id(run)] = align_heldout(run, st)
             cam_timer.add("cameras", time.perf_counter() - t0)
     camera_info = {"requested": settings.refine_cameras, "mode": mode, "reason": why, "source": source,
-                   "refined": False}
+                   "refined": False, "first_stage": camera_start if mode != "off" else None}
     chosen = len(runs) - 1  # "on": the refined run; "off": the only one
     if mode == "select":
         ctrl, cand = (aligned[id(r)] for r in runs)
@@ -695,6 +707,15 @@ def align_heldout(run: _Run, st: _Stage) -> dict:
     targets with the aligned cameras), ``world_to_camera`` (stem -> aligned (4, 4) pose),
     ``tiles`` (per-tile held-out errors, :func:`recon.optimize.material.heldout_error`) and
     ``corrections`` (of the held-out poses).
+
+    Under the loop's imaging terms (``imaging_loop``) the held-out views are rendered as the
+    training views are (flash offset and ambient in the renderer, falloff and tone curve on the
+    images) with exposure gains of their own, fitted with the poses (exposure prior); their
+    errors are those of the imaging selection (gains refitted on a checkerboard's black tiles,
+    errors on its white tiles: :func:`recon.optimize.imaging.heldout_tiles_under`). Rendered
+    under the ideal formation instead, a photo's exposure or tone would be explained by the pose
+    (with the flash at the lens, brightness and distance trade) and the two runs compared on
+    errors the cameras do not cause.
     """
     settings = run.settings
     size = int(settings.select_image_size)
@@ -702,37 +723,66 @@ def align_heldout(run: _Run, st: _Stage) -> dict:
     at_size = list(vs.cameras)
     if run.cameras is not None:
         at_size = run.cameras.ref.with_intrinsics(at_size)
-    ali = CameraRefinement(at_size, settings.camera_prior(), intrinsics=False, gauge=False,
-                           scene_size=scene_extent(run.views.cameras))
-    idx = list(range(len(at_size)))
     with torch.no_grad():
         maps = _map_values(settings, st.maps)
     mesh = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
+    imaging = run.imaging if run.imaging is not None and run.imaging.active else None
+    return align_views(mesh, maps, vs, at_size, settings, run.light, run.tone_scale, run.weights, imaging,
+                       scene_extent(run.views.cameras), run.bbox_scale)
+
+
+def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], settings: OptimizeSettings, light: float,
+                tone_scale: float, weights: dict, imaging: LoopImaging | None, scene_size: float,
+                object_size: float | None = None) -> dict:
+    """:func:`align_heldout` of views ``vs`` (starting from ``cameras``, at the size of ``vs``)
+    to a fixed model: ``mesh`` and its map values (``diffuse``, ``specular``, ``roughness``
+    tensors), rendered under ``imaging`` (active loop imaging terms, or None: the ideal formation);
+    ``scene_size``: the translation unit of the camera prior (the training cameras' extent)."""
+    ali = CameraRefinement(cameras, settings.camera_prior(), intrinsics=False, gauge=False, scene_size=scene_size)
+    idx = list(range(len(cameras)))
+    im_settings = ImagingSettings()
+    log_gain = None  # the views' own exposure gains (log), fitted with their poses
+    if imaging is not None and imaging.params.model.has("exposure"):
+        log_gain = torch.zeros(len(idx), dtype=torch.float32, requires_grad=True)
     n = int(settings.camera_align_iterations)
     if n > 0:
         renderer = _make_renderer(settings, mesh)
         v = torch.from_numpy(mesh.v_pos).to(torch.float32)
-        opt = torch.optim.Adam(ali.param_groups(), betas=settings.betas)
+        groups = ali.param_groups() + ([] if log_gain is None else [{"params": [log_gain], "lr": im_settings.lr}])
+        opt = torch.optim.Adam(groups, betas=settings.betas)
         base_lr = [g["lr"] for g in opt.param_groups]
-        w = run.weights.get("camera", 0.0)
+        w = weights.get("camera", 0.0)
+        w_exposure = weights.get("imaging", 0.0)
+        lighting = imaging.lighting() if imaging is not None else {}
         for it in range(n):
             for g, lr in zip(opt.param_groups, base_lr, strict=True):
                 g["lr"] = lr * 0.1 ** (it / max(n - 1, 1))
-            img = renderer.render_torch(v, maps["diffuse"], maps["specular"], maps["roughness"], ali.cameras(idx, at_size),
-                                        run.light, seed=ckpt.render_seed(settings.seed, 1000, it),
-                                        camera_table=ali.table(idx, at_size))
-            loss = objective.render_loss(img, vs.images, vs.weights, settings.tone_map, run.tone_scale)
+            img = renderer.render_torch(v, maps["diffuse"], maps["specular"], maps["roughness"], ali.cameras(idx, cameras),
+                                        light, seed=ckpt.render_seed(settings.seed, 1000, it),
+                                        camera_table=ali.table(idx, cameras), **lighting)
+            if imaging is not None:
+                img = imaging.apply(img, idx, gains=None if log_gain is None else torch.exp(log_gain))
+            loss = objective.render_loss(img, vs.images, vs.weights, settings.tone_map, tone_scale)
             if w:
                 loss = loss + w * ali.prior_loss()
+            if log_gain is not None and w_exposure:
+                loss = loss + w_exposure * 0.5 * (log_gain / im_settings.exposure_prior).pow(2).mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-    aligned = dataclasses.replace(vs, cameras=tuple(ali.cameras(idx, at_size)))
-    tiles = heldout_error(mesh, {k: x.numpy().astype(np.float32) for k, x in maps.items()}, aligned, run.light,
-                          run.tone_scale, settings.selection_settings(), spp=int(settings.select_spp),
-                          seed=int(settings.seed))
+    aligned = dataclasses.replace(vs, cameras=tuple(ali.cameras(idx, cameras)))
+    maps_np = {k: x.detach().numpy().astype(np.float32) for k, x in maps.items()}
+    sel = settings.selection_settings()
+    if imaging is None:
+        tiles = heldout_error(mesh, maps_np, aligned, light, tone_scale, sel, spp=int(settings.select_spp),
+                              seed=int(settings.seed))
+    else:
+        gb = build_gbuffer(mesh, list(aligned.cameras), int(settings.select_spp), int(settings.seed))
+        prob = ImagingProblem(gb, aligned, sel.tone_map, tone_scale, sel.tile)
+        tiles, _ = heldout_tiles_under(maps_np, model_from_settings(maps_np["specular"].shape[2]), imaging.params,
+                                       prob, light, sel, im_settings)
     return {"viewset": aligned, "world_to_camera": {c.stem: c.world_to_camera for c in aligned.cameras},
-            "tiles": tiles, "corrections": ali.corrections(object_size=run.bbox_scale)}
+            "tiles": tiles, "corrections": ali.corrections(object_size=object_size)}
 
 
 def cameras_source_of(cameras_json: str | os.PathLike) -> str | None:
@@ -858,6 +908,10 @@ def _select_loop_imaging(run: _Run, mesh: Mesh, maps: dict, covered: np.ndarray,
         with torch.no_grad():
             train_vs = dataclasses.replace(
                 train_vs, cameras=tuple(run.cameras.ref.cameras(range(len(train_vs)), train_vs.cameras)))
+    if run.imaging.share():
+        log.info("imaging terms for the loop: the control run's (%s; the cameras were held until then)",
+                 ", ".join(run.imaging.evidence["chosen"]) or "none")
+        return
     log.info("imaging terms for the loop: selection on stage %d's model (%d held-out views)", si, len(held_vs))
     params, ev = select_for_loop(settings, mesh, maps, model_from_settings(settings.specular_channels), covered,
                                  train_vs, held_vs, run.light, run.tone_scale, run.ldr)

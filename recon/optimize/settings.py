@@ -149,7 +149,11 @@ class OptimizeSettings:
     ``lr_scale`` and ``lr_decay`` like the other rates. ``camera_first_stage``: the cameras are
     held through the coarse-to-fine stages before this one and stepped from it on (0: every
     stage; 1 keeps the coarsest surface's shape errors out of the cameras: better for cameras
-    good to a few tenths of a pixel, worse for errors of a degree, docs/camera_refine.md).
+    good to a few tenths of a pixel, worse for errors of a degree, docs/camera_refine.md;
+    "auto": the first stage rendered under the loop's imaging terms, ``imaging_loop_stage`` + 1,
+    when ``imaging_loop`` is on and there are held-out views to choose them, else 0: before the
+    photos' exposures are modelled the refinement explains a view's exposure by its distance,
+    the flash being at the lens).
     The camera's imaging (:mod:`recon.optimize.imaging`, DESIGN section 6): ``select_imaging``
     (after the material model, on the same held-out views) tries the terms of ``imaging_terms``
     (flash_offset, exposure, ambient, falloff, tone) and keeps each only where it pays off the
@@ -227,7 +231,7 @@ class OptimizeSettings:
     camera_lr_focal: float = 0.0005
     camera_lr_principal: float = 0.0002
     camera_align_iterations: int = 40
-    camera_first_stage: int = 0
+    camera_first_stage: int | str = "auto"
     select_imaging: bool = False
     imaging_terms: tuple = ("flash_offset", "exposure", "ambient", "falloff", "tone")
     flash_offset: tuple | None = None
@@ -308,9 +312,12 @@ class OptimizeSettings:
             raise ValueError(f"select_min_gain must be >= 0, got {self.select_min_gain}")
         if self.refine_cameras not in CAMERA_MODES:
             raise ValueError(f"refine_cameras must be one of {CAMERA_MODES}, got {self.refine_cameras!r}")
-        for name in ("camera_align_iterations", "camera_first_stage"):
-            if int(getattr(self, name)) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if int(self.camera_align_iterations) < 0:
+            raise ValueError(f"camera_align_iterations must be >= 0, got {self.camera_align_iterations}")
+        if self.camera_first_stage != "auto" and not (
+                isinstance(self.camera_first_stage, int) and not isinstance(self.camera_first_stage, bool)
+                and self.camera_first_stage >= 0):
+            raise ValueError(f"camera_first_stage must be \"auto\" or an integer >= 0, got {self.camera_first_stage!r}")
         self.camera_prior()  # validates the camera prior's values
         for name in ("w_laplacian", "w_edge", "w_normal", "w_specular", "w_roughness", "w_camera"):
             if getattr(self, name) < 0:
@@ -358,6 +365,16 @@ class OptimizeSettings:
                 lr_focal=self.camera_lr_focal, lr_principal=self.camera_lr_principal)
         except ValueError as e:
             raise ValueError(str(e).replace("camera prior ", "camera_")) from None
+
+    def camera_start(self, n_stages: int, imaging_in_loop: bool) -> int:
+        """The coarse-to-fine stage the cameras are refined from (``camera_first_stage``):
+        ``imaging_in_loop``: the loop's imaging selection will run (``imaging_loop`` on, held-out
+        views); with "auto" the cameras then wait for its terms, if a later stage renders under
+        them."""
+        if self.camera_first_stage != "auto":
+            return int(self.camera_first_stage)
+        after = int(self.imaging_loop_stage) + 1
+        return after if imaging_in_loop and after < int(n_stages) else 0
 
     def camera_mode(self, source: str | None) -> tuple[str, str]:
         """("off" | "on" | "select", why) for cameras from ``source`` ("sfm", "given" or None =

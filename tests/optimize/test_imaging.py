@@ -357,6 +357,33 @@ def test_loop_imaging_applies_the_terms_of_the_selection():
                                                                            id(p.tone_raw)}
 
 
+def test_loop_imaging_shared_with_the_control_run():
+    """The camera refinement's paired runs: the refined run takes the control's imaging choice
+    (same terms, the values as chosen, not as the control's loop refined them later; its own
+    copy) instead of selecting again; without a choice to take it selects itself."""
+    from recon.optimize.imaging import LoopImaging
+
+    control, p = _loop_params()
+    chosen = {k: getattr(p, k).detach().clone() for k in ("log_gain", "falloff_k", "tone_raw")}
+    img = torch.rand(2, 6, 8, 3, generator=torch.Generator().manual_seed(1)) * 0.8
+    idx = np.array([0, 3])
+    want = control.apply(img, idx).detach()
+    with torch.no_grad():  # the control's loop goes on refining its terms
+        p.log_gain.add_(0.2)
+        p.tone_raw.mul_(0.5)
+    refined = LoopImaging(lr=0.01, exposure_prior=0.25, shared_from=control)
+    assert refined.share()
+    assert refined.evidence["shared"] and refined.report()["chosen"] == ["exposure", "falloff", "tone"]
+    assert torch.allclose(refined.apply(img, idx), want)
+    for k, v in chosen.items():
+        assert torch.equal(getattr(refined.params, k).detach(), v)
+    with torch.no_grad():
+        refined.params.log_gain.add_(1.0)
+    assert not torch.equal(control.adopted.log_gain, refined.params.log_gain)
+    assert not LoopImaging(lr=0.01, exposure_prior=0.25, shared_from=LoopImaging(0.01, 0.25)).share()
+    assert not LoopImaging(lr=0.01, exposure_prior=0.25).share()
+
+
 def test_loop_imaging_extremes_finite():
     """A gain near 0, a falloff that would cross 0, a flat tone segment, black and clipped pixels:
     finite predictions and gradients."""

@@ -191,8 +191,9 @@ def test_cameras_held_before_camera_first_stage(capture, tmp_path):
     """``camera_first_stage``: the cameras are held through the stages before it (a value past
     the last stage holds them throughout: output cameras = input), stepped from it on; it is
     refused negative."""
-    with pytest.raises(ValueError, match="camera_first_stage"):
-        OptimizeSettings(camera_first_stage=-1)
+    for bad in (-1, "first", True, 1.5):
+        with pytest.raises(ValueError, match="camera_first_stage"):
+            OptimizeSettings(camera_first_stage=bad)
     images, masks = _inputs(capture)
     cams_json, _ = _sfm_cameras(capture, tmp_path / "poses", deg=1.5, seed=2)
     stages = (StageSettings(0.14, 32, 6), StageSettings(0.12, 32, 6))
@@ -208,3 +209,19 @@ def test_cameras_held_before_camera_first_stage(capture, tmp_path):
             assert np.all(np.isfinite(c.world_to_camera))
             assert (not np.allclose(c.world_to_camera, given[stem].world_to_camera, atol=1e-9)) == moves, (first, stem)
         assert all((v["rotation_deg"] > 1e-6) == moves for v in views.values()), (first, views)
+
+
+def test_camera_first_stage_auto_waits_for_the_loop_imaging():
+    """``camera_first_stage: auto`` (the default): with the loop's imaging selection to come
+    (``imaging_loop`` on, held-out views) the cameras are refined from the first stage rendered
+    under its terms, ``imaging_loop_stage`` + 1, when there is such a stage; otherwise from
+    stage 0. A number is taken as it is."""
+    auto = OptimizeSettings()
+    assert auto.camera_first_stage == "auto"
+    assert auto.camera_start(3, imaging_in_loop=True) == 1
+    assert auto.camera_start(3, imaging_in_loop=False) == 0
+    assert auto.camera_start(1, imaging_in_loop=True) == 0  # no stage after the selection: never selected
+    later = OptimizeSettings(imaging_loop_stage=1)
+    assert later.camera_start(3, True) == 2 and later.camera_start(2, True) == 0
+    assert OptimizeSettings(camera_first_stage=0).camera_start(3, True) == 0
+    assert OptimizeSettings(camera_first_stage=2).camera_start(3, False) == 2
