@@ -523,7 +523,9 @@ def optimize_capture(
                         "formation", settings.imaging_loop)
         else:
             base = dataclasses.replace(base, ldr=capture_is_ldr(images))
-    camera_start = settings.camera_start(len(stages), settings.imaging_loop != "off" and heldout is not None)
+    # linear photos (RAW, EXR) carry their exposure: the cameras need not wait for the imaging terms
+    camera_start = settings.camera_start(len(stages), settings.imaging_loop != "off" and heldout is not None
+                                         and base.ldr is True)
     if mode != "off":
         log.info("camera refinement from stage %d (camera_first_stage: %s)", camera_start, settings.camera_first_stage)
     runs = []

@@ -150,10 +150,10 @@ class OptimizeSettings:
     held through the coarse-to-fine stages before this one and stepped from it on (0: every
     stage; 1 keeps the coarsest surface's shape errors out of the cameras: better for cameras
     good to a few tenths of a pixel, worse for errors of a degree, docs/camera_refine.md;
-    "auto": the first stage rendered under the loop's imaging terms, ``imaging_loop_stage`` + 1,
-    when ``imaging_loop`` is on and there are held-out views to choose them, else 0: before the
-    photos' exposures are modelled the refinement explains a view's exposure by its distance,
-    the flash being at the lens).
+    "auto": for JPEG/PNG photos the first stage rendered under the loop's imaging terms,
+    ``imaging_loop_stage`` + 1, when ``imaging_loop`` is on and there are held-out views to
+    choose them (before a phone's auto-exposure and tone curve are modelled the refinement
+    explains a view's exposure by its distance, the flash being at the lens), else 0).
     The camera's imaging (:mod:`recon.optimize.imaging`, DESIGN section 6): ``select_imaging``
     (after the material model, on the same held-out views) tries the terms of ``imaging_terms``
     (flash_offset, exposure, ambient, falloff, tone) and keeps each only where it pays off the
@@ -369,8 +369,8 @@ class OptimizeSettings:
     def camera_start(self, n_stages: int, imaging_in_loop: bool) -> int:
         """The coarse-to-fine stage the cameras are refined from (``camera_first_stage``):
         ``imaging_in_loop``: the loop's imaging selection will run (``imaging_loop`` on, held-out
-        views); with "auto" the cameras then wait for its terms, if a later stage renders under
-        them."""
+        views) on photos it is needed for (JPEG/PNG); with "auto" the cameras then wait for its
+        terms, if a later stage renders under them."""
         if self.camera_first_stage != "auto":
             return int(self.camera_first_stage)
         after = int(self.imaging_loop_stage) + 1

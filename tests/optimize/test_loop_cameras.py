@@ -225,3 +225,32 @@ def test_camera_first_stage_auto_waits_for_the_loop_imaging():
     assert later.camera_start(3, True) == 2 and later.camera_start(2, True) == 0
     assert OptimizeSettings(camera_first_stage=0).camera_start(3, True) == 0
     assert OptimizeSettings(camera_first_stage=2).camera_start(3, False) == 2
+
+
+def test_cameras_wait_for_the_loop_imaging_on_jpeg_photos(capture, tmp_path):
+    """``camera_first_stage: auto`` with ``imaging_loop: select``: photos from JPEG (the
+    linearize stage's linear.json says "ldr") have their cameras held until the imaging terms
+    are chosen on stage 0's model, and the refined run takes the control's choice (its
+    checkpoint's evidence says so); linear photos have them refined from stage 0."""
+    import torch as _torch
+
+    images, masks = _inputs(capture)
+    cams_json, _ = _sfm_cameras(capture, tmp_path / "poses", deg=0.5, seed=4)
+    s = _settings(refine_cameras="select", imaging_loop="select", imaging_terms=("exposure",), holdout_every=4,
+                  select_iterations=8, select_image_size=32, select_spp=1,
+                  stages=(StageSettings(0.14, 32, 4), StageSettings(0.12, 32, 4)))
+    jpeg = tmp_path / "jpeg_views"
+    jpeg.mkdir()
+    for p in images:
+        (jpeg / p.name).symlink_to(p)
+    (jpeg / "linear.json").write_text(json.dumps({"images": {p.stem: {"kind": "ldr"} for p in images}}))
+    for views, first in ((images, 0), (sorted(jpeg.glob("*.exr")), 1)):
+        out = tmp_path / f"first{first}"
+        summary = optimize_capture(views, masks, None, cams_json, capture / "init.obj", out, s, progress=False)
+        assert summary["camera_refinement"]["first_stage"] == first
+        refined = _torch.load(out / "checkpoints" / "cameras" / "last.pt", map_location="cpu", weights_only=False)
+        control = _torch.load(out / "checkpoints" / "last.pt", map_location="cpu", weights_only=False)
+        ev_r, ev_c = refined["imaging"]["evidence"], control["imaging"]["evidence"]
+        assert bool(ev_r.get("shared")) == (first == 1) and not ev_c.get("shared")
+        if first == 1:
+            assert ev_r["chosen"] == ev_c["chosen"]
