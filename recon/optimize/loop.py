@@ -53,8 +53,9 @@ from recon.optimize import regularizers as reg
 from recon.optimize.guard import SurfaceGuard, self_intersecting_faces
 from recon.optimize.largesteps import AdamUniform, LargeSteps
 from recon.optimize.gbuffer import build_gbuffer
-from recon.optimize.imaging import (ImagingProblem, ImagingSettings, LoopImaging, capture_is_ldr, heldout_tiles_under,
-                                    refit_under, run_imaging_selection, select_for_loop)
+from recon.optimize.imaging import (ImagingModel, ImagingParams, ImagingProblem, ImagingSettings, LoopImaging,
+                                    capture_is_ldr, heldout_tiles_under, refit_under, run_imaging_selection,
+                                    select_for_loop)
 from recon.optimize.material import compare, heldout_error, model_from_settings, select_material
 from recon.optimize.params import TexturePyramid, albedo_param, constant_map, roughness_param
 from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, topology_report, unwrap
@@ -559,11 +560,14 @@ def optimize_capture(
     chosen = len(runs) - 1  # "on": the refined run; "off": the only one
     if mode == "select":
         ctrl, cand = (aligned[id(r)] for r in runs)
+        run_imaging_active = any(r.imaging is not None and r.imaging.active for r in runs)
         cmp = compare(cand["tiles"], ctrl["tiles"], settings.selection_settings())
         chosen = 1 if cmp["accepted"] else 0
         camera_info["selection"] = {
             "criterion": f"keep the refined cameras when the held-out error (each run's held-out poses aligned "
-                         f"to its fixed model for {int(settings.camera_align_iterations)} steps) is lower than the "
+                         f"to its fixed model for {int(settings.camera_align_iterations)} steps"
+                         + (", under the loop's imaging terms with the views' own exposure gains"
+                            if run_imaging_active else "") + ") is lower than the "
                          f"control's (same run without refinement) by > {settings.select_z} x SE of the paired "
                          f"per-tile difference and by > {100 * settings.select_min_gain:.3g} %",
             "control_heldout_error": float(np.nanmean(ctrl["tiles"])),
@@ -728,8 +732,7 @@ def align_heldout(run: _Run, st: _Stage) -> dict:
     with torch.no_grad():
         maps = _map_values(settings, st.maps)
     mesh = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
-    imaging = run.imaging if run.imaging is not None and run.imaging.active else None
-    return align_views(mesh, maps, vs, at_size, settings, run.light, run.tone_scale, run.weights, imaging,
+    return align_views(mesh, maps, vs, at_size, settings, run.light, run.tone_scale, run.weights, run.imaging,
                        scene_extent(run.views.cameras), run.bbox_scale)
 
 
@@ -738,11 +741,17 @@ def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], sett
                 object_size: float | None = None) -> dict:
     """:func:`align_heldout` of views ``vs`` (starting from ``cameras``, at the size of ``vs``)
     to a fixed model: ``mesh`` and its map values (``diffuse``, ``specular``, ``roughness``
-    tensors), rendered under ``imaging`` (active loop imaging terms, or None: the ideal formation);
-    ``scene_size``: the translation unit of the camera prior (the training cameras' extent)."""
+    tensors), rendered under ``imaging`` (the loop's imaging terms, if it has chosen any; None:
+    ``imaging_loop`` off). With the loop on the errors are always the imaging selection's white
+    tiles (the ideal formation's when it chose nothing), so that two runs compare tile for tile
+    whatever each chose. ``scene_size``: the translation unit of the camera prior (the training
+    cameras' extent)."""
     ali = CameraRefinement(cameras, settings.camera_prior(), intrinsics=False, gauge=False, scene_size=scene_size)
     idx = list(range(len(cameras)))
     im_settings = ImagingSettings()
+    loop_on = imaging is not None
+    if imaging is not None and not imaging.active:
+        imaging = None  # the loop chose nothing: the ideal formation
     log_gain = None  # the views' own exposure gains (log), fitted with their poses
     if imaging is not None and imaging.params.model.has("exposure"):
         log_gain = torch.zeros(len(idx), dtype=torch.float32, requires_grad=True)
@@ -775,13 +784,14 @@ def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], sett
     aligned = dataclasses.replace(vs, cameras=tuple(ali.cameras(idx, cameras)))
     maps_np = {k: x.detach().numpy().astype(np.float32) for k, x in maps.items()}
     sel = settings.selection_settings()
-    if imaging is None:
+    if not loop_on:
         tiles = heldout_error(mesh, maps_np, aligned, light, tone_scale, sel, spp=int(settings.select_spp),
                               seed=int(settings.seed))
     else:
         gb = build_gbuffer(mesh, list(aligned.cameras), int(settings.select_spp), int(settings.seed))
         prob = ImagingProblem(gb, aligned, sel.tone_map, tone_scale, sel.tile)
-        tiles, _ = heldout_tiles_under(maps_np, model_from_settings(maps_np["specular"].shape[2]), imaging.params,
+        params = imaging.params if imaging is not None else ImagingParams(ImagingModel(()), len(idx), 1.0, tone_scale)
+        tiles, _ = heldout_tiles_under(maps_np, model_from_settings(maps_np["specular"].shape[2]), params,
                                        prob, light, sel, im_settings)
     return {"viewset": aligned, "world_to_camera": {c.stem: c.world_to_camera for c in aligned.cameras},
             "tiles": tiles, "corrections": ali.corrections(object_size=object_size)}

@@ -203,7 +203,9 @@ def _camera_section(cam: dict) -> str:
     out = ["<h2>Cameras refined by the renderer</h2>"]
     used = "used" if cam.get("refined") else "not used"
     out.append(f'<p>Mode <b>{html.escape(str(cam.get("mode")))}</b> ({html.escape(str(cam.get("reason", "")))}); '
-               f"the refined cameras were <b>{used}</b>.</p>")
+               f"the refined cameras were <b>{used}</b>"
+               + (f"; refined from coarse-to-fine stage {int(cam['first_stage'])}"
+                  if isinstance(cam.get("first_stage"), int) else "") + ".</p>")
     sel = cam.get("selection")
     if isinstance(sel, dict):
         out.append(f'<p class="note">{html.escape(str(sel.get("criterion", "")))}.</p>')

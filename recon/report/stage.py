@@ -385,7 +385,7 @@ def camera_refinement(summary: dict) -> dict | None:
     cam = summary.get("camera_refinement")
     if not isinstance(cam, dict):
         return None
-    out = {k: cam.get(k) for k in ("requested", "mode", "reason", "source", "refined") if k in cam}
+    out = {k: cam.get(k) for k in ("requested", "mode", "reason", "source", "refined", "first_stage") if k in cam}
     if isinstance(cam.get("selection"), dict):
         out["selection"] = cam["selection"]
     cor = cam.get("corrections")
