@@ -1,0 +1,120 @@
+"""Benchmark: how far the renderer's camera alignment can bring SfM's cameras when the model is
+exactly right (issue 17's diagnosis: is the refinement limited by the shape it is fitted with,
+or by what the photos tell?).
+
+Takes a synthetic capture (with ``gt/``) and the results folder of its SfM run through the
+workflow (``bench/sfm_cameras.py``'s ``results/sfm``). The true mesh and maps are mapped into
+SfM's frame (the similarity of the camera centres; the light intensity scaled by 1/s^2) and
+SfM's training cameras are aligned to that fixed, true model with
+:func:`recon.optimize.loop.align_views`, the held-out views' alignment (per-view pose
+corrections, the camera prior, rates decaying to 1/10, exposure gains of their own), under the
+imaging terms the run's loop chose. Printed: the camera errors against the truth before and
+after (rotation, centre / object size, reprojection of true surface points in the photos'
+pixels), per image size and step count, with SfM's focal length or the true one
+(``--true-focal``: the poses alone, as the alignment does not refine intrinsics).
+
+    .venv/bin/python bench/camera_observability.py /tmp/sfm_cameras/capture \
+        /tmp/sfm_cameras/results/sfm --sizes 256 640 --steps 40 200 --true-focal
+
+On the idealised captures the same alignment removes ~85 % of a perturbation
+(docs/camera_refine.md); what it removes here is what the phone's photos allow.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from camera_refine import camera_errors  # noqa: E402 (bench helper beside this file)
+
+from recon.config import load_preset  # noqa: E402
+from recon.io.cameras import Camera, CameraSet, load_cameras  # noqa: E402
+from recon.io.images import read_exr  # noqa: E402
+from recon.io.mesh import Mesh, read_mesh  # noqa: E402
+from recon.metrics import align_cameras  # noqa: E402
+from recon.optimize import objective, settings_from_dict  # noqa: E402
+from recon.optimize.camera_refine import scene_extent  # noqa: E402
+from recon.optimize.imaging import LoopImaging  # noqa: E402
+from recon.optimize.loop import align_views  # noqa: E402
+from recon.optimize.views import Views  # noqa: E402
+
+MAP_CHANNELS = {"diffuse": 3, "specular": 1, "roughness": 1}
+
+
+def true_model_in_sfm_frame(cap: Path, sfm: CameraSet) -> tuple[Mesh, dict, float]:
+    """The true mesh mapped into SfM's frame, its maps (tensors) and the similarity's scale."""
+    gt_cams = load_cameras(cap / "gt" / "cameras.json")
+    sim = align_cameras(sfm, gt_cams)  # SfM frame -> true frame
+    g = read_mesh(cap / "gt" / "mesh.obj")
+    v = ((g.v_pos - sim.translation) @ sim.rotation) / sim.scale
+    maps = {k: torch.tensor(np.ascontiguousarray(read_exr(cap / "gt" / f"{k}.exr")[..., :c]))
+            for k, c in MAP_CHANNELS.items()}
+    return Mesh(v, g.t_pos_idx, g.v_tex, g.t_tex_idx), maps, float(sim.scale)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("capture", type=Path, help="synthetic capture folder (with gt/)")
+    p.add_argument("results", type=Path, help="the capture's results folder of an SfM run (poses/, optimize/)")
+    p.add_argument("--preset", default="balanced", help="renderer and alignment settings (spp, prior, rates)")
+    p.add_argument("--sizes", type=int, nargs="+", default=[256])
+    p.add_argument("--steps", type=int, nargs="+", default=[40, 200])
+    p.add_argument("--true-focal", action="store_true", help="start from SfM's poses with the true intrinsics")
+    args = p.parse_args(argv)
+
+    cap, res = args.capture, args.results
+    summary = json.loads((res / "optimize" / "summary.json").read_text())
+    held = set(summary["holdout"]["held_out"])
+    sfm = load_cameras(res / "poses" / "cameras.json")
+    true_k = {c.stem: c.K for c in load_cameras(cap / "gt" / "cameras.json").frames}
+    frames = [Camera(c.image, c.width, c.height, true_k[c.stem] if args.true_focal else c.K, c.world_to_camera)
+              for c in sfm.frames if c.stem not in held]
+    mesh, maps, scale = true_model_in_sfm_frame(cap, sfm)
+    gt = load_cameras(cap / "gt" / "cameras.json")
+    g = read_mesh(cap / "gt" / "mesh.obj")
+    lo, hi = g.bbox()
+    size_obj = float(np.max(hi - lo))
+    pts = g.v_pos[np.random.default_rng(0).choice(len(g.v_pos), min(2000, len(g.v_pos)), replace=False)]
+    light = json.loads((cap / "gt" / "imaging.json").read_text())["light_intensity"] / scale ** 2
+    ck = torch.load(res / "optimize" / "checkpoints" / "last.pt", map_location="cpu", weights_only=False)
+    imaging = LoopImaging(0.01, 0.25)
+    if ck.get("imaging") is not None:
+        imaging.load(ck["imaging"])
+    chosen = imaging.report()["chosen"]
+
+    def fmt(e):
+        return (f"rotation {e['rotation_deg']:.3f} deg (max {e['rotation_deg_max']:.3f}), centre "
+                f"{100 * e['center']:.2f} % of the object, reprojection {e['reprojection_px']:.3f} px")
+
+    print(f"{len(frames)} training views; imaging terms of the run's loop: {', '.join(chosen) or 'none'}; "  # noqa: T201
+          f"focal: {'true' if args.true_focal else 'SfM'}")
+    print(f"before: {fmt(camera_errors(frames, gt, size_obj, pts))}")  # noqa: T201
+    base = dict(load_preset(args.preset).get("optimize") or {})
+    for size in args.sizes:
+        views_dir = res / "poses" / "undistorted"
+        v = Views([views_dir / f"{c.stem}.exr" for c in frames], [views_dir / "masks" / f"{c.stem}.png" for c in frames],
+                  None, CameraSet(tuple(frames), sfm.light_intensity), size)
+        vs = v.at(size)
+        for steps in args.steps:
+            s = settings_from_dict({**base, "camera_align_iterations": int(steps)}, "bench")
+            t0 = time.perf_counter()
+            r = align_views(mesh, maps, vs, list(vs.cameras), s, light, v.median_foreground, objective.weights(s),
+                            imaging, scene_extent(frames))
+            after = [Camera(c.image, c.width, c.height, c.K, a.world_to_camera)
+                     for c, a in zip(frames, r["viewset"].cameras, strict=True)]
+            print(f"{size} px, {steps} steps ({time.perf_counter() - t0:.0f} s): "  # noqa: T201
+                  f"{fmt(camera_errors(after, gt, size_obj, pts))}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
