@@ -69,11 +69,12 @@ def main(argv=None) -> int:
     p.add_argument("--sizes", type=int, nargs="+", default=[256])
     p.add_argument("--steps", type=int, nargs="+", default=[40, 200])
     p.add_argument("--true-focal", action="store_true", help="start from SfM's poses with the true intrinsics")
+    p.add_argument("--ideal", action="store_true", help="render the ideal formation, not the run's loop imaging")
     args = p.parse_args(argv)
 
     cap, res = args.capture, args.results
-    summary = json.loads((res / "optimize" / "summary.json").read_text())
-    held = set(summary["holdout"]["held_out"])
+    summary_json = res / "optimize" / "summary.json"  # without an optimize run: every view, ideal formation
+    held = set(json.loads(summary_json.read_text())["holdout"]["held_out"]) if summary_json.is_file() else set()
     sfm = load_cameras(res / "poses" / "cameras.json")
     true_k = {c.stem: c.K for c in load_cameras(cap / "gt" / "cameras.json").frames}
     frames = [Camera(c.image, c.width, c.height, true_k[c.stem] if args.true_focal else c.K, c.world_to_camera)
@@ -85,10 +86,12 @@ def main(argv=None) -> int:
     size_obj = float(np.max(hi - lo))
     pts = g.v_pos[np.random.default_rng(0).choice(len(g.v_pos), min(2000, len(g.v_pos)), replace=False)]
     light = json.loads((cap / "gt" / "imaging.json").read_text())["light_intensity"] / scale ** 2
-    ck = torch.load(res / "optimize" / "checkpoints" / "last.pt", map_location="cpu", weights_only=False)
     imaging = LoopImaging(0.01, 0.25)
-    if ck.get("imaging") is not None:
-        imaging.load(ck["imaging"])
+    ckpt = res / "optimize" / "checkpoints" / "last.pt"
+    if ckpt.is_file() and not args.ideal:
+        ck = torch.load(ckpt, map_location="cpu", weights_only=False)
+        if ck.get("imaging") is not None:
+            imaging.load(ck["imaging"])
     chosen = imaging.report()["chosen"]
 
     def fmt(e):
