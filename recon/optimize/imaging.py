@@ -229,11 +229,13 @@ class ImagingParams:
         g = self.gains()
         return 0.5 * (torch.log(g) / sigma).pow(2).mean()
 
-    def clone(self) -> "ImagingParams":
-        """An independent copy (same terms, same values)."""
-        out = ImagingParams(self.model, int(self.log_gain.shape[0]), self.length, self.tone_scale,
-                            None if self.offset_given is None else self.offset_given.numpy(), int(self.tone_raw.shape[0]),
-                            normalize_gains=self.normalize_gains)
+    def clone(self, n_views: int | None = None, normalize_gains: bool | None = None) -> "ImagingParams":
+        """An independent copy (same terms, same values); for ``n_views`` other views (e.g.
+        held-out ones) the exposure gains start at 1."""
+        out = ImagingParams(self.model, int(self.log_gain.shape[0]) if n_views is None else int(n_views), self.length,
+                            self.tone_scale, None if self.offset_given is None else self.offset_given.numpy(),
+                            int(self.tone_raw.shape[0]),
+                            self.normalize_gains if normalize_gains is None else bool(normalize_gains))
         return out.copy_from(self)
 
     def copy_from(self, other: "ImagingParams") -> "ImagingParams":
@@ -419,10 +421,7 @@ def heldout_tiles_under(maps: dict, material: MaterialModel, p: ImagingParams, p
         d = torch.tensor(np.asarray(maps["diffuse"], np.float32))
         sp = None if material.specular == "none" else torch.tensor(np.asarray(maps["specular"], np.float32))
         ro = torch.tensor(np.asarray(maps["roughness"], np.float32))
-    ip = ImagingParams(p.model, prob.shape[0], p.length, p.tone_scale,
-                       None if p.offset_given is None else p.offset_given.numpy(), p.tone_raw.shape[0],
-                       normalize_gains=False)
-    ip.copy_from(p)
+    ip = p.clone(n_views=prob.shape[0], normalize_gains=False)
     if p.model.has("exposure"):
         with torch.no_grad():
             ip.log_gain.zero_()

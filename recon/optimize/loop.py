@@ -752,14 +752,16 @@ def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], sett
     loop_on = imaging is not None
     if imaging is not None and not imaging.active:
         imaging = None  # the loop chose nothing: the ideal formation
-    log_gain = None  # the views' own exposure gains (log), fitted with their poses
+    own = None  # these views' own exposure gains, fitted with their poses (the loop's other terms as they are)
     if imaging is not None and imaging.params.model.has("exposure"):
-        log_gain = torch.zeros(len(idx), dtype=torch.float32, requires_grad=True)
+        own = imaging.params.clone(n_views=len(idx), normalize_gains=False)
+        with torch.no_grad():
+            own.log_gain.zero_()
     n = int(settings.camera_align_iterations)
     if n > 0:
         renderer = _make_renderer(settings, mesh)
         v = torch.from_numpy(mesh.v_pos).to(torch.float32)
-        groups = ali.param_groups() + ([] if log_gain is None else [{"params": [log_gain], "lr": im_settings.lr}])
+        groups = ali.param_groups() + ([] if own is None else [{"params": [own.log_gain], "lr": im_settings.lr}])
         opt = torch.optim.Adam(groups, betas=settings.betas)
         base_lr = [g["lr"] for g in opt.param_groups]
         w = weights.get("camera", 0.0)
@@ -772,12 +774,12 @@ def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], sett
                                         light, seed=ckpt.render_seed(settings.seed, 1000, it),
                                         camera_table=ali.table(idx, cameras), **lighting)
             if imaging is not None:
-                img = imaging.apply(img, idx, gains=None if log_gain is None else torch.exp(log_gain))
+                img = imaging.apply(img, idx, gains=None if own is None else own.gains())
             loss = objective.render_loss(img, vs.images, vs.weights, settings.tone_map, tone_scale)
             if w:
                 loss = loss + w * ali.prior_loss()
-            if log_gain is not None and w_exposure:
-                loss = loss + w_exposure * 0.5 * (log_gain / im_settings.exposure_prior).pow(2).mean()
+            if own is not None and w_exposure:
+                loss = loss + w_exposure * own.prior(im_settings.exposure_prior)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
