@@ -401,11 +401,13 @@ def test_loop_imaging_extremes_finite():
         assert torch.isfinite(t.grad).all()
 
 
-def test_optimize_stage_imaging_loop(tmp_path):
+def test_optimize_stage_imaging_loop(tmp_path, drjit_single_thread):
     """imaging_loop: select on a capture whose views' exposure is off by 0.4 stops each: the
     selection after stage 0 keeps the exposure term, the next stage renders under it and refines
     the gains (on this 64 x 48, 20-iteration coarse model: RMS error 4.3 % after the selection,
-    3.6 % after the loop, measured), summary.json records it."""
+    3.6 % after the loop, measured), summary.json records it. drjit on one thread: with its
+    threads' float atomics in any order the largest gain error spread around the bound (0.1235
+    once against 0.12 in CI)."""
     import json
 
     from recon.optimize import optimize_capture
