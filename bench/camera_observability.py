@@ -45,6 +45,7 @@ from recon.optimize import objective, settings_from_dict  # noqa: E402
 from recon.optimize.camera_refine import scene_extent  # noqa: E402
 from recon.optimize.imaging import LoopImaging  # noqa: E402
 from recon.optimize.loop import align_views  # noqa: E402
+from recon.optimize.tracks import SfmTracks, TrackTerm  # noqa: E402
 from recon.optimize.views import Views  # noqa: E402
 
 MAP_CHANNELS = {"diffuse": 3, "specular": 1, "roughness": 1}
@@ -69,6 +70,8 @@ def main(argv=None) -> int:
     p.add_argument("--sizes", type=int, nargs="+", default=[256])
     p.add_argument("--steps", type=int, nargs="+", default=[40, 200])
     p.add_argument("--true-focal", action="store_true", help="start from SfM's poses with the true intrinsics")
+    p.add_argument("--tracks", type=float, nargs="+", default=[0.0],
+                   help="weights of SfM's tracks reprojected through the aligned cameras (0: the renderer alone)")
     p.add_argument("--ideal", action="store_true", help="render the ideal formation, not the run's loop imaging")
     args = p.parse_args(argv)
 
@@ -108,14 +111,22 @@ def main(argv=None) -> int:
                   None, CameraSet(tuple(frames), sfm.light_intensity), size)
         vs = v.at(size)
         for steps in args.steps:
+          for wt in args.tracks:
             s = settings_from_dict({**base, "camera_align_iterations": int(steps)}, "bench")
             t0 = time.perf_counter()
-            r = align_views(mesh, maps, vs, list(vs.cameras), s, light, v.median_foreground, objective.weights(s),
-                            imaging, scene_extent(frames))
+            tr = None
+            if wt > 0:
+                tr = (TrackTerm(SfmTracks.load(res / "poses" / "sparse", sfm, [c.stem for c in frames])), frames)
+            r = align_views(mesh, maps, vs, list(vs.cameras), s, light, v.median_foreground,
+                            {**objective.weights(s), "tracks": wt}, imaging, scene_extent(frames), tracks=tr)
             after = [Camera(c.image, c.width, c.height, c.K, a.world_to_camera)
                      for c, a in zip(frames, r["viewset"].cameras, strict=True)]
-            print(f"{size} px, {steps} steps ({time.perf_counter() - t0:.0f} s): "  # noqa: T201
-                  f"{fmt(camera_errors(after, gt, size_obj, pts))}")
+            extra = ""
+            if tr is not None:
+                extra = f"; tracks {tr[0].tracks.reprojection(frames).mean():.3f} -> " \
+                        f"{tr[0].tracks.reprojection(after).mean():.3f} px (points as SfM's)"
+            print(f"{size} px, {steps} steps, tracks {wt:g} ({time.perf_counter() - t0:.0f} s): "  # noqa: T201
+                  f"{fmt(camera_errors(after, gt, size_obj, pts))}{extra}")
     return 0
 
 

@@ -445,6 +445,27 @@ def test_sfm_outputs_follow_the_contract(synthetic_sfm):
     assert json.loads((out / "poses.json").read_text())["registered"] == diag["registered"]
 
 
+def test_sfm_tracks_reproject_through_the_object_frame_cameras(synthetic_sfm):
+    """The sparse model's tracks brought into cameras.json's frame and pinhole pixels
+    (recon.optimize.tracks.SfmTracks) reproject through cameras.json as COLMAP's own model does."""
+    from recon.optimize.tracks import SfmTracks, TrackError
+
+    capture, results, diag = synthetic_sfm
+    est = load_cameras(results / "poses" / "cameras.json")
+    stems = [c.stem for c in est.frames]
+    tr = SfmTracks.load(results / "poses" / "sparse", est, stems, min_views=2)
+    r = tr.reprojection(list(est.frames))
+    assert tr.n_observations > 20 * len(stems)
+    assert r.mean() == pytest.approx(diag["mean_reprojection_error_px"], rel=0.05)
+    assert np.all(np.bincount(tr.point) >= 2)
+    # the points sit on the object, inside the object frame's box
+    assert np.median(np.abs(tr.points)) < 1.0
+    with pytest.raises(TrackError, match="rerun the poses stage"):
+        SfmTracks.load(results / "poses" / "sparse", est, stems + ["no_such_view"])
+    with pytest.raises(TrackError, match="points3D.bin"):
+        SfmTracks.load(results / "poses", est, stems)
+
+
 def test_refinement_never_keeps_implausible_intrinsics(synthetic_sfm):
     """The final free bundle adjustment once drifted on the demo (f 264 -> 1552 px, k = -58)
     and emptied the visual hull. A refinement whose intrinsics leave the plausible range (here:

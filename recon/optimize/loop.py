@@ -57,6 +57,7 @@ from recon.optimize.imaging import (ImagingModel, ImagingParams, ImagingProblem,
                                     capture_is_ldr, heldout_tiles_under, refit_under, run_imaging_selection,
                                     select_for_loop)
 from recon.optimize.material import compare, heldout_error, model_from_settings, select_material
+from recon.optimize.tracks import TrackTerm
 from recon.optimize.params import TexturePyramid, albedo_param, constant_map, roughness_param
 from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, topology_report, unwrap
 from recon.optimize.settings import OptimizeSettings, StageSettings
@@ -738,14 +739,16 @@ def align_heldout(run: _Run, st: _Stage) -> dict:
 
 def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], settings: OptimizeSettings, light: float,
                 tone_scale: float, weights: dict, imaging: LoopImaging | None, scene_size: float,
-                object_size: float | None = None) -> dict:
+                object_size: float | None = None, tracks: tuple[TrackTerm, list[Camera]] | None = None) -> dict:
     """:func:`align_heldout` of views ``vs`` (starting from ``cameras``, at the size of ``vs``)
     to a fixed model: ``mesh`` and its map values (``diffuse``, ``specular``, ``roughness``
     tensors), rendered under ``imaging`` (the loop's imaging terms, if it has chosen any; None:
     ``imaging_loop`` off). With the loop on the errors are always the imaging selection's white
     tiles (the ideal formation's when it chose nothing), so that two runs compare tile for tile
     whatever each chose. ``scene_size``: the translation unit of the camera prior (the training
-    cameras' extent)."""
+    cameras' extent). ``tracks``: SfM's tracks of these views and the views' cameras at the
+    photos' size, reprojected through the aligned cameras as a second term (weight
+    ``weights["tracks"]``; :mod:`recon.optimize.tracks`)."""
     ali = CameraRefinement(cameras, settings.camera_prior(), intrinsics=False, gauge=False, scene_size=scene_size)
     idx = list(range(len(cameras)))
     im_settings = ImagingSettings()
@@ -762,6 +765,7 @@ def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], sett
         renderer = _make_renderer(settings, mesh)
         v = torch.from_numpy(mesh.v_pos).to(torch.float32)
         groups = ali.param_groups() + ([] if own is None else [{"params": [own.log_gain], "lr": im_settings.lr}])
+        w_tracks = weights.get("tracks", 0.0) if tracks is not None else 0.0
         opt = torch.optim.Adam(groups, betas=settings.betas)
         base_lr = [g["lr"] for g in opt.param_groups]
         w = weights.get("camera", 0.0)
@@ -780,6 +784,9 @@ def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], sett
                 loss = loss + w * ali.prior_loss()
             if own is not None and w_exposure:
                 loss = loss + w_exposure * own.prior(im_settings.exposure_prior)
+            if w_tracks:
+                tracks[0].retriangulate(ali, tracks[1])
+                loss = loss + w_tracks * tracks[0].loss(ali, tracks[1])
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
