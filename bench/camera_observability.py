@@ -16,6 +16,10 @@ pixels), per image size and step count, with SfM's focal length or the true one
     .venv/bin/python bench/camera_observability.py /tmp/sfm_cameras/capture \
         /tmp/sfm_cameras/results/sfm --sizes 256 640 --steps 40 200 --true-focal
 
+``--tracks W ...``: SfM's tracks (``poses/sparse``) reprojected through the aligned cameras as
+a second term of weight W (:mod:`recon.optimize.tracks`), with a line comparing how well the
+tracks fit SfM's cameras and the true ones.
+
 On the idealised captures the same alignment removes ~85 % of a perturbation
 (docs/camera_refine.md); what it removes here is what the phone's photos allow.
 """
@@ -23,6 +27,7 @@ On the idealised captures the same alignment removes ~85 % of a perturbation
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import time
@@ -141,8 +146,7 @@ def main(argv=None) -> int:
         v = Views([views_dir / f"{c.stem}.exr" for c in frames], [views_dir / "masks" / f"{c.stem}.png" for c in frames],
                   None, CameraSet(tuple(frames), sfm.light_intensity), size)
         vs = v.at(size)
-        for steps in args.steps:
-          for wt in args.tracks:
+        for steps, wt in itertools.product(args.steps, args.tracks):
             s = settings_from_dict({**base, "camera_align_iterations": int(steps)}, "bench")
             t0 = time.perf_counter()
             tr = None
@@ -154,8 +158,8 @@ def main(argv=None) -> int:
                      for c, a in zip(frames, r["viewset"].cameras, strict=True)]
             extra = ""
             if tr is not None:
-                extra = f"; tracks {tr[0].tracks.reprojection(frames).mean():.3f} -> " \
-                        f"{tr[0].tracks.reprojection(after).mean():.3f} px (points as SfM's)"
+                extra = (f"; tracks {tr[0].tracks.reprojection(frames).mean():.3f} -> "
+                         f"{tr[0].tracks.reprojection(after).mean():.3f} px (points as SfM's)")
             print(f"{size} px, {steps} steps, tracks {wt:g} ({time.perf_counter() - t0:.0f} s): "  # noqa: T201
                   f"{fmt(camera_errors(after, gt, size_obj, pts))}{extra}")
     return 0
