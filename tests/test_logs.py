@@ -80,8 +80,10 @@ def test_ctrl_c_exits_130_and_logs_it(tmp_path):
     log = tmp_path / "logs" / "masks.log"
     script = tmp_path / "script.py"
     script.write_text(textwrap.dedent(SCRIPT.format(body="print('ready', flush=True); time.sleep(60)")))
+    # SIGINT at its default in the child: a job started in the background of a non-interactive
+    # shell (nohup ... &) inherits it ignored, and Python then never raises KeyboardInterrupt
     p = subprocess.Popen([sys.executable, str(script), str(log)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True)
+                         text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         assert p.stdout.readline().strip() == "ready"
         p.send_signal(signal.SIGINT)
