@@ -51,6 +51,7 @@ from recon.optimize.camera_refine import CameraRefinement, scene_extent  # noqa:
 from recon.optimize.imaging import LoopImaging  # noqa: E402
 from recon.optimize.loop import align_views  # noqa: E402
 from recon.optimize.tracks import SfmTracks, TrackTerm  # noqa: E402
+from recon.poses.frame import rotate_cameras  # noqa: E402
 from recon.optimize.views import Views  # noqa: E402
 
 MAP_CHANNELS = {"diffuse": 3, "specular": 1, "roughness": 1}
@@ -72,14 +73,9 @@ def tracks_under_the_truth(res: Path, sfm: CameraSet, frames: list[Camera], gt: 
     training cameras and under the true ones mapped into SfM's frame (same intrinsics): when the
     truth fits them no better, the tracks cannot tell the two apart (or prefer SfM's)."""
     sim = align_cameras(CameraSet(tuple(frames), 1.0), gt)  # SfM frame -> true frame
-    M = np.eye(4)
-    M[:3, :3], M[:3, 3] = sim.scale * sim.rotation, sim.translation
     t = gt.by_stem()
-    truth = []
-    for c in frames:
-        W = t[c.stem].world_to_camera @ M
-        W[:3] /= sim.scale  # camera coordinates scaled back: the same projection
-        truth.append(Camera(c.image, c.width, c.height, c.K, W))
+    moved = rotate_cameras(CameraSet(tuple(t[c.stem] for c in frames), 1.0), sim.inverse()).frames
+    truth = [Camera(c.image, c.width, c.height, c.K, m.world_to_camera) for c, m in zip(frames, moved, strict=True)]
     tr = SfmTracks.load(res / "poses" / "sparse", sfm, [c.stem for c in frames])
     ss = []
     for cams in (frames, truth):

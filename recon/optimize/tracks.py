@@ -111,12 +111,11 @@ class SfmTracks:
 
     def reprojection(self, cameras: Sequence[Camera]) -> np.ndarray:
         """(M,) reprojection errors (pixels) of the observations through ``cameras`` (the views
-        in the order of ``stems``, at the photos' size)."""
-        K = np.stack([c.K for c in cameras])[self.view]
-        W = np.stack([c.world_to_camera for c in cameras])[self.view]
-        x = np.einsum("mij,mj->mi", W[:, :3, :3], self.points[self.point]) + W[:, :3, 3]
-        p = np.einsum("mij,mj->mi", K, x)
-        return np.linalg.norm(p[:, :2] / p[:, 2:3] - self.uv, axis=1)
+        in the order of ``stems``, at the photos' size), SfM's points as they are."""
+        from recon.optimize.camera_refine import CameraRefinement
+
+        with torch.no_grad():
+            return TrackTerm(self).residuals(CameraRefinement(cameras, gauge=False), cameras).numpy()
 
 
 class TrackTerm(torch.nn.Module):
@@ -145,7 +144,7 @@ class TrackTerm(torch.nn.Module):
         p = (K @ x[..., None])[..., 0]
         front = p[:, 2] > 1e-9 * torch.linalg.norm(x, dim=-1)  # points behind a camera: no residual (cheirality)
         z = torch.where(front, p[:, 2], torch.ones_like(p[:, 2]))[:, None]
-        r = torch.sqrt(((p[:, :2] / z - self._uv) ** 2).sum(-1) + 1e-18)
+        r = torch.sqrt(((p[:, :2] / z - self._uv) ** 2).sum(-1) + 1e-24)
         return torch.where(front, r, torch.zeros_like(r))
 
     @torch.no_grad()
@@ -176,15 +175,9 @@ class TrackTerm(torch.nn.Module):
             ok = torch.isfinite(step).all(-1, keepdim=True)
             self.points.add_(torch.where(ok, step, torch.zeros_like(step)))
 
-    def loss(self, refinement, cameras: Sequence[Camera], views: Sequence[int] | None = None) -> torch.Tensor:
-        """Mean Huber cost over the observations of ``views`` (None: all): ``(r / sigma)^2`` up to
-        ``huber`` sigmas, ``2 huber r / sigma - huber^2`` beyond."""
+    def loss(self, refinement, cameras: Sequence[Camera]) -> torch.Tensor:
+        """Mean Huber cost over the observations: ``(r / sigma)^2`` up to ``huber`` sigmas,
+        ``2 huber r / sigma - huber^2`` beyond."""
         r = self.residuals(refinement, cameras) / self.sigma_px
-        if views is not None:
-            sel = torch.isin(self._view, torch.as_tensor(np.asarray(views, dtype=np.int64)))
-            r = r[sel]
-            if r.numel() == 0:
-                return self.points.sum() * 0.0
         h = self.huber
-        cost = torch.where(r <= h, r * r, 2 * h * r - h * h)
-        return cost.mean()
+        return torch.where(r <= h, r * r, 2 * h * r - h * h).mean()
