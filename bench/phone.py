@@ -13,7 +13,7 @@ this measures the imaging model, not the shape) fits
   with gain and SE),
 
 and reports per case: held-out error (the selection's metric), held-out sRGB RMSE (DESIGN 5, on
-the checkerboard's white tiles), diffuse albedo RMSE against gt/diffuse.exr over the covered
+every tile, each scored under the gains fitted on the other colour), diffuse albedo RMSE against gt/diffuse.exr over the covered
 texels, the recovered parameters against gt/imaging.json (offset in mm for a 10-cm object),
 and the seconds of each fit. Writes ``<out>/results.json``, ``docs/phone.md`` and
 ``docs/phone.png`` (unless ``--no-docs``).

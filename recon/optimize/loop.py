@@ -54,7 +54,8 @@ from recon.optimize.guard import SurfaceGuard, self_intersecting_faces
 from recon.optimize.largesteps import AdamUniform, LargeSteps
 from recon.optimize.gbuffer import build_gbuffer
 from recon.optimize.imaging import (ImagingModel, ImagingParams, ImagingProblem, ImagingSettings, LoopImaging,
-                                    capture_is_ldr, heldout_tiles_under, refit_under, run_imaging_selection,
+                                    capture_is_ldr, heldout_tiles_under, material_scorer_under, refit_under,
+                                    run_imaging_selection,
                                     select_for_loop)
 from recon.optimize.material import compare, heldout_error, model_from_settings, select_material
 from recon.optimize.tracks import TrackTerm
@@ -613,15 +614,25 @@ def optimize_capture(
             held_vs = held_cams["viewset"]
     if settings.select_material and heldout is not None:
         t0 = time.perf_counter()
-        log.info("material model selection on %d held-out views", len(heldout))
+        s_mat = settings.selection_settings()
+        # under the loop's imaging terms the candidates' maps are fitted under them: the chosen
+        # fit's maps are then those the asset carries (no refit after)
+        scorer = None if not (loop_imaging and settings.select_material_under_imaging) else material_scorer_under(
+            run.imaging.params, final, st.covered, train_vs, held_vs, light, tone_scale, s_mat,
+            spp=int(settings.select_spp), seed=int(settings.seed) + 29)
+        log.info("material model selection on %d held-out views%s", len(heldout),
+                 "" if scorer is None else " under the loop's imaging terms")
         fit, selection = select_material(
             final, final_maps, st.covered, train_vs, held_vs, light, tone_scale,
-            settings.selection_settings(), spp=int(settings.select_spp), seed=int(settings.seed),
-            progress=lambda m, f: log.info("material: fitted %s: held-out error %.5f", m.label(), f.heldout))
+            s_mat, spp=int(settings.select_spp), seed=int(settings.seed),
+            progress=lambda m, f: log.info("material: fitted %s: held-out error %.5f", m.label(), f.heldout),
+            scorer=scorer)
         final_maps, model = fit.maps, fit.model
+        selection["under_imaging"] = scorer is not None
         timer.add("material", time.perf_counter() - t0)
         log.info("material model: %s", model.label())
-    if loop_imaging and not settings.select_imaging:
+    material_under = bool(selection and selection.get("under_imaging"))
+    if loop_imaging and not settings.select_imaging and not material_under:
         t0 = time.perf_counter()
         refit = refit_under(run.imaging.params, model, final, final_maps, st.covered, train_vs, light, tone_scale,
                             settings.imaging_selection_settings(), spp=int(settings.select_spp), seed=int(settings.seed) + 29)
@@ -718,8 +729,8 @@ def align_heldout(run: _Run, st: _Stage) -> dict:
     Under the loop's imaging terms (``imaging_loop``) the held-out views are rendered as the
     training views are (flash offset and ambient in the renderer, falloff and tone curve on the
     images) with exposure gains of their own, fitted with the poses (exposure prior); their
-    errors are those of the imaging selection (gains refitted on a checkerboard's black tiles,
-    errors on its white tiles: :func:`recon.optimize.imaging.heldout_tiles_under`). Rendered
+    errors are those of the imaging selection (gains cross-fitted on a checkerboard's tiles,
+    fitted on one colour, errors on the other: :func:`recon.optimize.imaging.heldout_tiles_under`). Rendered
     under the ideal formation instead, a photo's exposure or tone would be explained by the pose
     (with the flash at the lens, brightness and distance trade) and the two runs compared on
     errors the cameras do not cause.

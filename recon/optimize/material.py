@@ -345,7 +345,7 @@ def nested_init(current: Fit, init_maps: dict, candidate: MaterialModel | None =
 
 def select_material(mesh: Mesh, init_maps: dict, covered: np.ndarray, train: ViewSet, heldout: ViewSet,
                     light: float, tone_scale: float, s: SelectionSettings, spp: int = 4, seed: int = 0,
-                    progress=None) -> tuple[Fit, dict]:
+                    progress=None, scorer=None) -> tuple[Fit, dict]:
     """Greedy forward selection of the material model (module docstring).
 
     Parameters
@@ -355,21 +355,29 @@ def select_material(mesh: Mesh, init_maps: dict, covered: np.ndarray, train: Vie
     covered : (T, T) bool, texels inside the charts.
     train, heldout : target views (images at the size to compare at).
     light, tone_scale : I_e and the tone map's scale (as in the main loop).
+    scorer : optional ``scorer(model, init) -> Fit`` (its ``tile_errors`` set) that fits and scores
+        a candidate instead of the ideal formation here, with a ``criterion`` string attribute
+        for the evidence: :func:`recon.optimize.imaging.material_scorer_under` compares the
+        models under a phone's imaging terms.
 
     Returns
     -------
     (the chosen Fit, evidence dict for summary.json / the report)
     """
     t0 = time.perf_counter()
-    gb_train = build_gbuffer(mesh, list(train.cameras), spp, seed)
-    gb_held = build_gbuffer(mesh, list(heldout.cameras), spp, seed + 1)
+    if scorer is None:
+        gb_train = build_gbuffer(mesh, list(train.cameras), spp, seed)
+        gb_held = build_gbuffer(mesh, list(heldout.cameras), spp, seed + 1)
+        problem = _Problem(gb_train, train, s.tone_map, tone_scale)
+
+        def scorer(model: MaterialModel, init: dict) -> Fit:
+            fit = fit_model(model, gb_train, train, init, covered, light, tone_scale, s, problem)
+            fit.tile_errors = tile_errors(fit.maps, model, gb_held, heldout, light, tone_scale, s)
+            return fit
     t_gbuf = time.perf_counter() - t0
 
-    problem = _Problem(gb_train, train, s.tone_map, tone_scale)
-
     def evaluate(model: MaterialModel, init: dict) -> Fit:
-        fit = fit_model(model, gb_train, train, init, covered, light, tone_scale, s, problem)
-        fit.tile_errors = tile_errors(fit.maps, model, gb_held, heldout, light, tone_scale, s)
+        fit = scorer(model, init)
         fit.heldout = float(np.nanmean(fit.tile_errors))
         if progress is not None:
             progress(model, fit)
@@ -408,12 +416,12 @@ def select_material(mesh: Mesh, init_maps: dict, covered: np.ndarray, train: Vie
         "criterion": f"keep a richer model when its held-out error is lower than the current model's (refitted "
                      f"as long) by > {s.z} x SE of the paired per-tile difference (over {s.tile}-pixel tiles"
                      + (f", {100 * s.trim:.3g} % trimmed mean" if s.trim else "") + ") and by "
-                     f"> {100 * s.min_gain:.3g} %",
+                     f"> {100 * s.min_gain:.3g} %" + getattr(scorer, "criterion", ""),
         "metric": f"mean |Phi(render) - Phi(photo)| (Phi = {s.tone_map} tone map) over held-out pixels",
         "heldout_views": len(heldout),
         "train_views": len(train),
         "image_size": [int(train.cameras[0].width), int(train.cameras[0].height)],
-        "spp": gb_train.spp,
+        "spp": int(spp),
         "iterations": int(s.iterations),
         "candidates": rows,
         "chosen": current.model.to_dict(),

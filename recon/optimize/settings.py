@@ -127,7 +127,10 @@ class OptimizeSettings:
     richer one only when the held-out error drops by more than ``select_z`` standard errors
     and ``select_min_gain`` (relative); fits run ``select_iterations`` Adam steps at rate
     ``select_lr`` on images of longest side ``select_image_size`` with ``select_spp`` samples
-    per pixel. ``stop_on_plateau``: after each coarse-to-fine stage, measure the held-out error
+    per pixel; ``select_material_under_imaging`` (default true): when the loop ran under a
+    phone's imaging terms (``imaging_loop``), fit and compare the candidates under them, with the
+    held-out views' own exposure gains (false: under the ideal formation, the maps refitted under
+    the terms after). ``stop_on_plateau``: after each coarse-to-fine stage, measure the held-out error
     and skip the remaining stages when it did not improve on the previous stage's by more than
     its noise (same test).
 
@@ -210,6 +213,7 @@ class OptimizeSettings:
     guard: bool = True
     guard_max_halvings: int = 8
     select_material: bool = False
+    select_material_under_imaging: bool = True
     stop_on_plateau: bool = False
     holdout_every: int = 8
     select_iterations: int = 150
