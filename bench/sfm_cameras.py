@@ -19,7 +19,9 @@ similarity of the camera centres): accuracy and completeness in the unit boundin
 ratio to ``given``; the pose errors after that similarity (rotation, centre / object size) and
 the focal length's error; as a diagnostic, the accuracy after the similarity that best fits the
 surface to the truth (ICP; ``object frame``) and the size of that correction: how much of the
-gap is the frame that the camera centres fix, not the shape; the camera refinement's decision;
+gap is the frame that the camera centres fix, not the shape; and the accuracy the true mesh
+itself scores when placed by that frame error (what a perfect shape would score under the
+camera-centre alignment); the camera refinement's decision;
 the poses and optimize stages' seconds.
 
     .venv/bin/python bench/sfm_cameras.py --out /tmp/sfm_cameras --preset balanced --res 640
@@ -47,7 +49,7 @@ from tabletop_e2e import snakemake  # noqa: E402
 
 from recon.io.cameras import load_cameras  # noqa: E402
 from recon.io.mesh import Mesh, read_mesh  # noqa: E402
-from recon.metrics import Similarity, chamfer, seen_chamfer  # noqa: E402
+from recon.metrics import Similarity, chamfer, seen_chamfer, umeyama  # noqa: E402
 from recon.synth.capture import PRESETS  # noqa: E402
 
 log = logging.getLogger("bench.sfm_cameras")
@@ -84,6 +86,10 @@ def measure(res: Path, cap: Path) -> dict:
     v = sim.apply(mesh.v_pos)
     v_obj, frame = object_frame(v, mesh, gt_mesh)
     obj = chamfer(Mesh(v_obj, mesh.t_pos_idx), gt_mesh, n_samples=100_000, seed=0)
+    # the frame's share: the true mesh placed where the camera-centre alignment puts this run's
+    # shape (moved by the inverse of the surface fit), i.e. what a perfect shape would score
+    placed = Mesh(umeyama(v_obj, v).apply(gt_mesh.v_pos), gt_mesh.t_pos_idx)
+    frame["perfect_shape_accuracy"] = chamfer(placed, gt_mesh, n_samples=100_000, seed=0)["accuracy"]
     seen = seen_chamfer(Mesh(v, mesh.t_pos_idx), gt_mesh, gt_cams)
     cam = m.get("camera_refinement") or {}
     pe = mm.get("pose_errors") or {}
@@ -103,7 +109,8 @@ def table(results: dict) -> str:
     g = results.get("given") or {}
     rows = ["| cameras | registered | rot. error (deg) | centre error (% object) | focal error (%) | accuracy | "
             "ratio to given | completeness | ratio | seen surface: accuracy, ratio / completeness, ratio | object frame: accuracy, ratio (frame error: % object, scale %) | "
-            "renderer's refinement | poses s | optimize s |", "|" + "---|" * 14]
+            "a perfect shape in this frame: accuracy | "
+            "renderer's refinement | poses s | optimize s |", "|" + "---|" * 15]
     for run, r in results.items():
         def ratio(k, r=r):
             return f"{r[k] / g[k]:.2f}" if g.get(k) else "-"
@@ -116,7 +123,8 @@ def table(results: dict) -> str:
                     f"{100 * r['focal']:+.2f} | {r['accuracy']:.5f} | {ratio('accuracy')} | {r['completeness']:.5f} | "
                     f"{ratio('completeness')} | {r['accuracy_seen']:.5f}, {ratio('accuracy_seen')} / "
                     f"{r['completeness_seen']:.5f}, {ratio('completeness_seen')} | {r['accuracy_object_frame']:.5f}, {ratio('accuracy_object_frame')} "
-                    f"({100 * fe['translation']:.2f}, {100 * fe['scale']:+.2f}) | {refine} | "
+                    f"({100 * fe['translation']:.2f}, {100 * fe['scale']:+.2f}) | "
+                    f"{fe.get('perfect_shape_accuracy', float('nan')):.5f} | {refine} | "
                     f"{r['poses_seconds'] or 0:.0f} | {r['optimize_seconds'] or 0:.0f} |")
     return "\n".join(rows)
 
