@@ -469,6 +469,16 @@ def heldout_tiles_under(maps: dict, material: MaterialModel, p: ImagingParams, p
     return np.concatenate([prob.tile_errors(preds["white"], "white"), prob.tile_errors(preds["black"], "black")]), rmse
 
 
+def _problems(mesh, train: ViewSet, heldout: ViewSet, s: SelectionSettings, tone_scale: float, spp: int,
+              seed: int) -> tuple[ImagingProblem, ImagingProblem, float]:
+    """The training and held-out views' problems on a fixed mesh and the mesh's size."""
+    gb_train = build_gbuffer(mesh, list(train.cameras), spp, seed)
+    gb_held = build_gbuffer(mesh, list(heldout.cameras), spp, seed + 1)
+    lo, hi = mesh.bbox()
+    return (ImagingProblem(gb_train, train, s.tone_map, tone_scale, s.tile),
+            ImagingProblem(gb_held, heldout, s.tone_map, tone_scale, s.tile), float(np.max(hi - lo)))
+
+
 def select_imaging(mesh, material_fit: Fit, covered: np.ndarray, train: ViewSet, heldout: ViewSet, light: float,
                    tone_scale: float, s: SelectionSettings, im: ImagingSettings | None = None,
                    candidates: tuple = TERMS, offset_given=None, spp: int = 4, seed: int = 0,
@@ -482,12 +492,7 @@ def select_imaging(mesh, material_fit: Fit, covered: np.ndarray, train: ViewSet,
     """
     im = im or ImagingSettings()
     t0 = time.perf_counter()
-    gb_train = build_gbuffer(mesh, list(train.cameras), spp, seed)
-    gb_held = build_gbuffer(mesh, list(heldout.cameras), spp, seed + 1)
-    p_train = ImagingProblem(gb_train, train, s.tone_map, tone_scale, s.tile)
-    p_held = ImagingProblem(gb_held, heldout, s.tone_map, tone_scale, s.tile)
-    lo, hi = mesh.bbox()
-    length = float(np.max(hi - lo))
+    p_train, p_held, length = _problems(mesh, train, heldout, s, tone_scale, spp, seed)
     mat = material_fit.model
     base_model = ImagingModel()
     if offset_given is not None:
@@ -793,15 +798,11 @@ def material_scorer_under(params: ImagingParams, mesh, covered: np.ndarray, trai
     material models under the imaging terms the loop used (``params``: the start of each fit,
     refined with its maps, as :func:`refit_under` does) and scores them as the imaging selection
     does (:func:`heldout_tiles_under`: the held-out views' exposure gains fitted on one
-    checkerboard colour, the errors on the other, both ways round). Under the ideal formation a phone's per-view exposure (here up to
-    +-50 %) is error every material model shares, and it buries a specular lobe's gain."""
+    checkerboard colour, the errors on the other, both ways round). Under the ideal formation a
+    phone's per-view exposure (up to +-50 % on the phone captures) is error every material model
+    shares, and it buries a specular lobe's gain."""
     im = ImagingSettings()
-    gb_train = build_gbuffer(mesh, list(train_set.cameras), spp, seed)
-    gb_held = build_gbuffer(mesh, list(heldout_set.cameras), spp, seed + 1)
-    p_train = ImagingProblem(gb_train, train_set, s.tone_map, tone_scale, s.tile)
-    p_held = ImagingProblem(gb_held, heldout_set, s.tone_map, tone_scale, s.tile)
-    lo, hi = mesh.bbox()
-    length = float(np.max(hi - lo))
+    p_train, p_held, length = _problems(mesh, train_set, heldout_set, s, tone_scale, spp, seed)
     offset = None if params.offset_given is None else params.offset_given.numpy()
 
     def scorer(material: MaterialModel, init: dict) -> Fit:
