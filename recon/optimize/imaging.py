@@ -330,9 +330,9 @@ class ImagingProblem(_Problem):
             e = e * select
         return e.sum() / self.n_total
 
-    def tile_errors(self, rendered: torch.Tensor, colour: str = "white") -> np.ndarray:
-        """Mean loss per tile of the given checkerboard colour; NaN where a tile has no unclipped
-        pixel."""
+    def tile_errors(self, rendered: torch.Tensor, colour: str | None = "white") -> np.ndarray:
+        """Mean loss per tile of the given checkerboard colour (None: every tile, in the order of
+        :func:`recon.optimize.material.tile_errors`); NaN where a tile has no unclipped pixel."""
         V, H, W = self.shape
         e = np.zeros(V * H * W)
         e[self.pixels] = self.pixel_errors(rendered).detach().numpy()
@@ -341,11 +341,11 @@ class ImagingProblem(_Problem):
         e, fg = e.reshape(V, H, W), fg.reshape(V, H, W)
         t = self.tile
         out = []
-        want = 0 if colour == "black" else 1
+        want = None if colour is None else (0 if colour == "black" else 1)
         for v in range(V):
             for y in range(0, H, t):
                 for x in range(0, W, t):
-                    if ((y // t + x // t) % 2) != want:
+                    if want is not None and ((y // t + x // t) % 2) != want:
                         continue
                     m = fg[v, y:y + t, x:x + t]
                     out.append(e[v, y:y + t, x:x + t][m].mean() if m.any() else np.nan)
@@ -439,9 +439,10 @@ def heldout_tiles_under(maps: dict, material: MaterialModel, p: ImagingParams, p
 
     With exposure gains, each view's gain is fitted twice: on the black tiles of an 8-pixel
     checkerboard to score the white ones, and on the white to score the black (cross-fitting:
-    no tile scores the gain it was fitted on, and every tile is scored). Returns the errors of
-    the white tiles followed by those of the black (NaN where a tile has no unclipped pixel);
-    without exposure both colours are scored under ``p`` as they are."""
+    no tile scores the gain it was fitted on, and every tile is scored). Returns every tile's
+    error in the order of :func:`recon.optimize.material.tile_errors` (NaN where a tile has no
+    unclipped pixel), so that runs under the imaging terms and under the ideal formation pair
+    tile for tile; without exposure both colours are scored under ``p`` as they are."""
     with torch.no_grad():
         d = torch.tensor(np.asarray(maps["diffuse"], np.float32))
         sp = None if material.specular == "none" else torch.tensor(np.asarray(maps["specular"], np.float32))
@@ -466,7 +467,7 @@ def heldout_tiles_under(maps: dict, material: MaterialModel, p: ImagingParams, p
         tgt = prob.target_linear[kept]
         diff = srgb_encode(pred[kept]) - srgb_encode(tgt)
         rmse = float(torch.sqrt((diff * diff).mean())) if diff.numel() else float("nan")
-    return np.concatenate([prob.tile_errors(preds["white"], "white"), prob.tile_errors(preds["black"], "black")]), rmse
+    return prob.tile_errors(pred, None), rmse
 
 
 def _problems(mesh, train: ViewSet, heldout: ViewSet, s: SelectionSettings, tone_scale: float, spp: int,
