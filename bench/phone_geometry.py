@@ -62,10 +62,11 @@ def make(root: Path, name: str, args) -> Path:
     return cap
 
 
-def run_folder(root: Path, run: str, cap: Path, overrides: dict, preset: str, leave_out: tuple[str, ...] = ()
-               ) -> Path:
+def run_folder(root: Path, run: str, cap: Path, overrides: dict, preset: str, leave_out: tuple[str, ...] = (),
+               poses: dict | None = None) -> Path:
     """A capture folder for one run: the capture's files linked (but ``leave_out``, e.g.
-    ``cameras.json`` so that SfM runs), its own capture.yaml."""
+    ``cameras.json`` so that SfM runs), its own capture.yaml (``overrides`` in its optimize
+    section, ``poses`` in its poses section)."""
     d = root / "runs" / run
     d.mkdir(parents=True, exist_ok=True)
     for f in cap.iterdir():
@@ -84,6 +85,8 @@ def run_folder(root: Path, run: str, cap: Path, overrides: dict, preset: str, le
     base["preset"] = preset
     if overrides:
         base["optimize"] = {**(base.get("optimize") or {}), **overrides}
+    if poses:
+        base["poses"] = {**(base.get("poses") or {}), **poses}
     text = yaml.safe_dump(base, sort_keys=False)
     if not (d / "capture.yaml").is_file() or (d / "capture.yaml").read_text() != text:
         (d / "capture.yaml").write_text(text)

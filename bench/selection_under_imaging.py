@@ -6,7 +6,9 @@ run's own final checkpoints (held-out camera alignment, material selection, maps
 ``select_material_under_imaging`` true and false, into ``<out>/<name>/{under,ideal}``, and prints
 per run and way: the chosen model, its held-out error, the first specular step's gain and SE, and
 (with the capture's ``gt/``) the texture RMSE of the maps against the truth by the report's
-``texture_errors`` under the run's own alignment (report/metrics.json).
+``texture_errors`` under the run's own alignment (report/metrics.json). ``--clustered``: for
+every step compared under the imaging terms, the paired test's SE as the selection computes it
+(tiles independent) beside SEs clustered by 2 x 2 and 4 x 4 blocks of tiles and by view.
 
 The checkpoints are reused although the settings' fingerprint differs in this one key: it acts
 after the loop only, so the loop's final state is the same either way (the bench says so in its
@@ -88,6 +90,29 @@ def texture_rmse(res: Path, out: Path, cap: Path) -> dict:
     return texture_errors(read_model(out), read_ground_truth(cap / "gt").model, sim, m["unit"], 100_000, 0.02)
 
 
+def clustered_ses(pairs: list, evidence: dict, tile: int) -> list[str]:
+    """Rows of SEs of the recorded paired comparisons (richer, current, result) under clustering;
+    the tiles come per held-out view, row by row (recon.optimize.material.tile_errors)."""
+    w, h = evidence["image_size"]
+    ty, tx = -(-h // tile), -(-w // tile)
+    v, y, x = np.meshgrid(np.arange(evidence["heldout_views"]), np.arange(ty), np.arange(tx), indexing="ij")
+    v, y, x = v.ravel(), y.ravel(), x.ravel()
+    groups = {"2 x 2 tiles": v * 10**6 + (y // 2) * 1000 + x // 2, "4 x 4 tiles": v * 10**6 + (y // 4) * 1000 + x // 4,
+              "view": v}
+    rows = []
+    for richer, current, res in pairs:
+        d = current - richer
+        ok = np.isfinite(d)
+        cells = [f"{res['gain']:+.5f}", f"{res['se']:.5f} ({res['gain'] / res['se']:.2f})"]
+        for g in groups.values():
+            dd, gg = d[ok], g[ok]
+            sums = np.array([(dd[gg == k] - dd.mean()).sum() for k in np.unique(gg)])
+            se = np.sqrt(len(sums) / (len(sums) - 1) * (sums**2).sum()) / dd.size
+            cells.append(f"{se:.5f} ({res['gain'] / se:.2f})")
+        rows.append(cells)
+    return rows
+
+
 def row(name: str, way: str, s: dict, tex: dict | None) -> str:
     sel = s["material_selection"]
     steps = {c["step"]: c for c in sel["candidates"]}
@@ -102,7 +127,19 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+", help="<results>/<capture>[:<capture folder with gt/>]")
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--clustered", action="store_true", help="SEs clustered by tile blocks and views")
     args = ap.parse_args(argv)
+    import recon.optimize.material as material
+
+    pairs = []
+    compare = material.compare
+
+    def recording(richer, current, s):
+        res = compare(richer, current, s)
+        pairs.append((np.asarray(richer, float), np.asarray(current, float), res))
+        return res
+
+    material.compare = recording
     logging.basicConfig(level=logging.WARNING)
     lines = ["| run | compared | chosen | held-out error | uniform specular: gain / SE | "
              "texture RMSE diffuse / specular / roughness | selection s |", "|---|---|---|---|---|---|---|"]
@@ -112,7 +149,14 @@ def main(argv=None) -> int:
         name = f"{res.parent.parent.name}/{res.parent.name}/{res.name}"
         for way, under in (("ideal formation", False), ("under the imaging terms", True)):
             folder = args.out / res.parent.parent.name / res.name / ("under" if under else "ideal")
+            pairs.clear()
             s = redo(res, folder, under)
+            if args.clustered and under:
+                steps = [c["step"] for c in s["material_selection"]["candidates"][1:]]
+                out(f"SEs of {name}, under the imaging terms: step | gain | independent tiles (z) | "
+                    + " | ".join(["2 x 2 tiles (z)", "4 x 4 tiles (z)", "view (z)"]))
+                for step, cells in zip(steps, clustered_ses(pairs, s["material_selection"], material.SelectionSettings().tile), strict=True):
+                    out(f"| {step} | " + " | ".join(cells) + " |")
             tex = texture_rmse(res, folder, Path(cap)) if cap else None
             lines.append(row(name, way, s, tex))
             out(lines[-1])

@@ -25,6 +25,8 @@ camera-centre alignment); the camera refinement's decision;
 the poses and optimize stages' seconds.
 
     .venv/bin/python bench/sfm_cameras.py --out /tmp/sfm_cameras --preset balanced --res 640
+    .venv/bin/python bench/sfm_cameras.py --out /tmp/sfm_alone --preset balanced --scene void \
+        --seed 3 --sift-upsample 2 --runs given,sfm      # the object alone (docs/camera_refine.md)
 
 Captures and runs are cached in ``<out>``; Snakemake redoes nothing that is done.
 """
@@ -141,6 +143,8 @@ def main(argv=None) -> int:
     p.add_argument("--spp", type=int, default=16)
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--runs", default=",".join(RUNS))
+    p.add_argument("--sift-upsample", type=int, default=1,
+                   help="poses.sift_upsample of the SfM runs (2: SIFT on 2x enlarged images, config/README.md)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     root = args.out
@@ -150,7 +154,9 @@ def main(argv=None) -> int:
     if unknown:
         p.error(f"unknown runs {sorted(unknown)}; choose from {sorted(RUNS)}")
     for r in runs:
-        run_folder(root, r, cap, RUNS[r], args.preset, leave_out=() if r == "given" else ("cameras.json",))
+        sfm = r != "given"
+        run_folder(root, r, cap, RUNS[r], args.preset, leave_out=("cameras.json",) if sfm else (),
+                   poses={"sift_upsample": args.sift_upsample} if sfm and args.sift_upsample != 1 else None)
     results_dir = root / "results"
     for r in runs:  # one at a time: each run's wall times are its own
         log.info("run %s: %.0f s", r, snakemake(root / "runs", results_dir,
