@@ -612,14 +612,16 @@ def optimize_capture(
                 train_vs, cameras=tuple(run.cameras.ref.cameras(range(len(train_vs)), train_vs.cameras)))
         if held_cams is not None:
             held_vs = held_cams["viewset"]
+    scorer = None  # the material selection's, when it fits the candidates under the loop's imaging terms
     if settings.select_material and heldout is not None:
         t0 = time.perf_counter()
         s_mat = settings.selection_settings()
         # under the loop's imaging terms the candidates' maps are fitted under them: the chosen
         # fit's maps are then those the asset carries (no refit after)
-        scorer = None if not (loop_imaging and settings.select_material_under_imaging) else material_scorer_under(
-            run.imaging.params, final, st.covered, train_vs, held_vs, light, tone_scale, s_mat,
-            spp=int(settings.select_spp), seed=int(settings.seed) + 29)
+        if loop_imaging and settings.select_material_under_imaging:
+            scorer = material_scorer_under(run.imaging.params, final, st.covered, train_vs, held_vs, light,
+                                           tone_scale, s_mat, spp=int(settings.select_spp),
+                                           seed=int(settings.seed) + 29)
         log.info("material model selection on %d held-out views%s", len(heldout),
                  "" if scorer is None else " under the loop's imaging terms")
         fit, selection = select_material(
@@ -631,8 +633,7 @@ def optimize_capture(
         selection["under_imaging"] = scorer is not None
         timer.add("material", time.perf_counter() - t0)
         log.info("material model: %s", model.label())
-    material_under = bool(selection and selection.get("under_imaging"))
-    if loop_imaging and not settings.select_imaging and not material_under:
+    if loop_imaging and not settings.select_imaging and scorer is None:
         t0 = time.perf_counter()
         refit = refit_under(run.imaging.params, model, final, final_maps, st.covered, train_vs, light, tone_scale,
                             settings.imaging_selection_settings(), spp=int(settings.select_spp), seed=int(settings.seed) + 29)
