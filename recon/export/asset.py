@@ -83,6 +83,10 @@ class ExportSettings:
     marker_square_m : float
         The side of a square of the ChArUco mat in the photos, in metres (0 = no mat): the scale
         comes from the mat (:mod:`recon.marker`; the board OpenCV's 5 x 7 ChArUco, DICT_4X4_50).
+    min_mask_coverage : float
+        With the masks and cameras given: the asset's silhouettes must cover at least this
+        fraction of the masks (mean over views), or nothing is exported (a collapsed or
+        misplaced surface is not an asset). 0 = no check.
 
     An object standing on a table (``plane.json``, :mod:`recon.support`): whatever ``up`` says,
     the plane's normal becomes +Y, the plane y = 0 (the object's base stands on the ground)
@@ -94,8 +98,11 @@ class ExportSettings:
     meters_per_unit: float = 1.0
     object_height_m: float = 0.0
     marker_square_m: float = 0.0
+    min_mask_coverage: float = 0.5
 
     def __post_init__(self):
+        if not (0.0 <= self.min_mask_coverage < 1.0):
+            raise ValueError(f"min_mask_coverage must be in [0, 1), got {self.min_mask_coverage}")
         if self.up not in ("cameras", "identity"):
             raise ValueError(f"up must be 'cameras' or 'identity', got {self.up!r}")
         if not (0.0 <= self.min_up_agreement <= 1.0):
@@ -299,6 +306,38 @@ def _share(folder: Path) -> None:
         p.chmod(0o666 & ~mask)
 
 
+def check_covers_masks(mesh, cameras_json, masks_dir, min_covered: float, mesh_obj, size: int = 128) -> dict:
+    """The mesh's silhouettes against the masks (:func:`recon.optimize.radiometry.mask_coverage`,
+    at longest side ``size``); ExportError when they cover less than ``min_covered`` of them."""
+    import cv2
+
+    from recon.io.cameras import load_cameras
+    from recon.io.images import read_mask
+    from recon.optimize.radiometry import mask_coverage
+
+    cams, masks = [], []
+    for cam in load_cameras(cameras_json):
+        path = Path(masks_dir) / f"{cam.stem}.png"
+        if not path.is_file():
+            continue
+        m = read_mask(path).astype(np.float32)
+        f = min(1.0, size / max(m.shape))
+        c = cam.scaled(f * m.shape[1] / cam.width)  # the camera at the mask's size, then reduced
+        masks.append(cv2.resize(m, (c.width, c.height), interpolation=cv2.INTER_AREA))
+        cams.append(c)
+    if not cams:
+        return {}
+    cov = mask_coverage(mesh, cams, np.stack(masks))
+    log.info("the asset covers %.1f %% of the masks (worst view %.1f %%)", 100 * cov["covered_mean"],
+             100 * cov["covered_min"])
+    if cov["covered_mean"] < min_covered:
+        raise ExportError(
+            f"{mesh_obj}: the optimized surface covers only {100 * cov['covered_mean']:.0f} % of the masks in "
+            f"{masks_dir} (need {100 * min_covered:.0f} %): it collapsed or left the object, and is not an asset; "
+            "see the optimize stage's log (flash intensity, masks, cameras) and rerun optimize")
+    return cov
+
+
 def export_asset(
     mesh_obj: str | os.PathLike,
     diffuse_exr: str | os.PathLike,
@@ -309,6 +348,7 @@ def export_asset(
     cameras_json: str | os.PathLike | None = None,
     plane_json: str | os.PathLike | None = None,
     views_dir: str | os.PathLike | None = None,
+    masks_dir: str | os.PathLike | None = None,
 ) -> dict[str, Path]:
     """Write ``out_dir/asset.glb``, ``asset.usdz``, ``asset.usda`` and the PNG textures.
 
@@ -331,12 +371,17 @@ def export_asset(
     views_dir
         The pinhole views of ``cameras_json`` (``<stem>.exr``), where ``settings.marker_square_m``
         asks for the scale of a marker mat in them.
+    masks_dir
+        The masks of those views (``<stem>.png``): the asset must cover them
+        (``settings.min_mask_coverage``, :func:`check_covers_masks`).
 
     Returns
     -------
     dict of the written files: ``glb``, ``usdz``, ``usda`` and the texture names.
     """
     mesh, material = load_model(mesh_obj, diffuse_exr, specular_exr, roughness_exr)
+    if masks_dir is not None and cameras_json is not None and settings.min_mask_coverage > 0:
+        check_covers_masks(mesh, cameras_json, masks_dir, settings.min_mask_coverage, mesh_obj)
     try:
         plane = plane_if_found(plane_json)
     except PlaneError as e:

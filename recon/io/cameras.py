@@ -76,11 +76,19 @@ class Camera:
 
 @dataclass(frozen=True)
 class CameraSet:
-    """All views of a capture and the collocated light's intensity."""
+    """All views of a capture and the collocated light's intensity.
+
+    ``light_known``: the intensity was stated (``light.intensity`` in the file, a calibrated
+    flash or a synthetic capture's truth); False when the file leaves it out, as after SfM,
+    whose frame has no physical scale: ``light_intensity`` is then a placeholder (1) and the
+    optimize stage estimates the flash's scale from the photos (DESIGN section 3,
+    :mod:`recon.optimize.radiometry`).
+    """
 
     frames: tuple[Camera, ...]
     light_intensity: float = 1.0
     extra: dict = field(default_factory=dict)
+    light_known: bool = True
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -128,11 +136,15 @@ def parse_cameras(data: dict, source: str = "cameras.json") -> CameraSet:
     light = data.get("light", {}) or {}
     if light.get("type", "collocated_point") != "collocated_point":
         raise CameraError(f"{source}: light.type must be 'collocated_point', got {light.get('type')!r}")
-    intensity = float(light.get("intensity", 1.0))
+    known = light.get("intensity") is not None
+    try:
+        intensity = float(light["intensity"]) if known else 1.0
+    except (TypeError, ValueError):
+        raise CameraError(f"{source}: light.intensity must be a positive number, got {light['intensity']!r}") from None
     if not np.isfinite(intensity) or intensity <= 0:
         raise CameraError(f"{source}: light.intensity must be a positive number, got {intensity}")
     extra = {k: v for k, v in data.items() if k not in ("frames", "light")}
-    return CameraSet(tuple(frames), intensity, extra)
+    return CameraSet(tuple(frames), intensity, extra, light_known=known)
 
 
 def load_cameras(path: str | os.PathLike) -> CameraSet:
@@ -159,7 +171,9 @@ def cameras_to_dict(cams: CameraSet) -> dict:
         }
         for c in cams.frames
     ]
-    out["light"] = {"type": "collocated_point", "intensity": float(cams.light_intensity)}
+    out["light"] = {"type": "collocated_point"}
+    if cams.light_known:
+        out["light"]["intensity"] = float(cams.light_intensity)
     return out
 
 

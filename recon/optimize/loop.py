@@ -50,6 +50,8 @@ from recon.optimize import checkpoint as ckpt
 from recon.optimize import objective
 from recon.optimize.camera_refine import CameraRefinement, scene_extent
 from recon.optimize import regularizers as reg
+from recon.optimize.radiometry import (ESTIMATE_SIZE, CollapseError, LightScale, LightScaleError,
+                                       check_not_collapsed, clipped_fraction, estimate_light_scale, mask_coverage)
 from recon.optimize.guard import SurfaceGuard, self_intersecting_faces
 from recon.optimize.largesteps import AdamUniform, LargeSteps
 from recon.optimize.gbuffer import build_gbuffer
@@ -115,13 +117,15 @@ class _Run:
     bbox_scale: float  # longest side of the initial mesh's bounding box
     weights: dict  # objective.weights(settings)
     tone_scale: float
-    light: float
+    light: float  # the flash's I_e (given, or estimated from the photos: light_scale)
     ckpt_dir: Path
     fingerprint: str
     cameras: "_CameraFit | None" = None  # the camera refinement (None: the cameras are fixed)
     plane: SupportPlane | None = None  # the table the object stands on: no vertex goes below it
     imaging: LoopImaging | None = None  # imaging terms in the loop (imaging_loop: select)
     ldr: bool | None = None  # the photos were JPEG/PNG (the tone curve is tried)
+    light_scale: LightScale | None = None  # where ``light`` came from; the initial diffuse albedo
+    area_init: float = 0.0  # the initial mesh's area (the collapse check)
 
     def lr_geometry(self, factor: float = 1.0) -> float:
         """Adam's geometry rate: ``lr_geometry`` is a fraction of the bounding box per step."""
@@ -194,7 +198,8 @@ def _map_values(settings: OptimizeSettings, maps: dict) -> dict:
 
 
 # ---------------------------------------------------------------------- stage set-up
-def _initial_stage_mesh(init: Mesh, settings: OptimizeSettings, stage: StageSettings, h: float):
+def _initial_stage_mesh(init: Mesh, settings: OptimizeSettings, stage: StageSettings, h: float,
+                        init_diffuse=None):
     v, f = remesh(init.v_pos, init.t_pos_idx, h)
     topo = topology_report(v, f)
     if not topo["is_mesh_two_manifold"]:
@@ -206,7 +211,7 @@ def _initial_stage_mesh(init: Mesh, settings: OptimizeSettings, stage: StageSett
     mesh = unwrap(v, f, T)
     face, _, _ = rasterize_atlas(mesh, T)
     maps = {
-        "diffuse": constant_map(T, 3, settings.init_diffuse),
+        "diffuse": constant_map(T, 3, settings.init_diffuse if init_diffuse is None else init_diffuse),
         "specular": constant_map(T, settings.specular_channels, settings.init_specular),
         "roughness": constant_map(T, 1, settings.init_roughness),
     }
@@ -516,10 +521,11 @@ def optimize_capture(
              plane_json if plane is not None else None]
     fp = ckpt.fingerprint(settings.to_dict(), [str(f) if f is not None else None for f in files])
     tone_scale = views.median_foreground
-    light = views.light_intensity
+    light_scale = _light_scale(settings, cams, views, init, cameras_json)
+    light = light_scale.intensity
 
     base = _Run(settings, tuple(stages), views, heldout, bbox_scale, weights, tone_scale, light, ckpt_dir, fp,
-                plane=plane)
+                plane=plane, light_scale=light_scale, area_init=float(init.area()))
     if settings.imaging_loop != "off":
         if heldout is None:
             log.warning("imaging_loop: %s needs held-out views (at least 6 views); the loop renders the ideal "
@@ -652,6 +658,12 @@ def optimize_capture(
     n_si = int(self_intersecting_faces(final.v_pos, final.t_pos_idx).sum())
     wall = time.perf_counter() - t_start
     summary = _summary(settings, stage_infos, records, timer, final, topo, n_si, wall, bbox_scale)
+    summary["light_intensity"] = float(light)
+    summary["light"] = {**light_scale.to_dict(),
+                        "diffuse_clipped_fraction": clipped_fraction(final_maps["diffuse"], st.covered)}
+    if light_scale.source == "estimated" and summary["light"]["diffuse_clipped_fraction"] > 0.02:
+        log.warning("%.1f %% of the diffuse map is at albedo 1: the estimated flash intensity is low for these "
+                    "photos", 100 * summary["light"]["diffuse_clipped_fraction"])
     summary["material_model"] = model.to_dict()
     summary["material_model_label"] = model.label()
     summary["material_selection"] = selection
@@ -854,7 +866,7 @@ def output_cameras(cams: CameraSet, run: _Run, heldout: dict | None, info: dict)
         "mode": info.get("mode"),
         "reason": info.get("reason"),
     }
-    return CameraSet(frames, cams.light_intensity, extra)
+    return CameraSet(frames, cams.light_intensity, extra, light_known=cams.light_known)
 
 
 def _run_stages(run: _Run, prog: _Progress, init: Mesh, state: dict | None, start_stage: int,
@@ -879,7 +891,9 @@ def _run_stages(run: _Run, prog: _Progress, init: Mesh, state: dict | None, star
             it0 = start_it
         else:
             if si == 0:
-                mesh, maps, covered = _initial_stage_mesh(init, settings, stage, h)
+                ls = run.light_scale
+                mesh, maps, covered = _initial_stage_mesh(init, settings, stage, h,
+                                                          None if ls is None else ls.init_diffuse)
             else:
                 mesh, maps, covered = remesh_and_rebake(prev_mesh, prev_maps, h, int(stage.texture_size))
             if run.plane is not None:  # remeshing may leave base vertices a hair below the table
@@ -909,6 +923,9 @@ def _run_stages(run: _Run, prog: _Progress, init: Mesh, state: dict | None, star
             if prog.callback is not None:
                 prog.callback(rec)
         prev_mesh = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
+        t0 = time.perf_counter()
+        stage_infos[-1]["mask_coverage"] = _check_collapse(run, prev_mesh, st, si)
+        timer.add("geometry", time.perf_counter() - t0)
         with torch.no_grad():
             prev_maps = {k: v.numpy().astype(np.float32) for k, v in _map_values(settings, st.maps).items()}
         if run.imaging is not None and run.imaging.evidence is None and si >= int(settings.imaging_loop_stage) \
@@ -929,6 +946,44 @@ def _run_stages(run: _Run, prog: _Progress, init: Mesh, state: dict | None, star
                 _save(run, prog, st, int(stage.iterations), done=False)
                 break
     return st
+
+
+def _light_scale(settings: OptimizeSettings, cams: CameraSet, views: Views, init: Mesh,
+                 cameras_json) -> LightScale:
+    """The flash's I_e: the one ``cameras.json`` states, else estimated from the training photos
+    on the initial mesh (``light_scale``; :mod:`recon.optimize.radiometry`)."""
+    if settings.light_scale == "given" and not cams.light_known:
+        raise OptimizeError(f"{cameras_json}: states no light.intensity, and light_scale is 'given'; give "
+                            "light_intensity in capture.yaml, or set optimize.light_scale: auto to estimate it")
+    if cams.light_known and settings.light_scale != "estimate":
+        log.info("flash intensity I_e = %.6g, given in %s: the albedo is absolute", cams.light_intensity, cameras_json)
+        return LightScale(float(cams.light_intensity), "given")
+    vs = views.at(ESTIMATE_SIZE)
+    try:
+        est = estimate_light_scale(init, vs.images.numpy(), vs.masks, vs.weights[..., 0].numpy() == 0, vs.cameras,
+                                   seed=int(settings.seed))
+    except LightScaleError as e:
+        raise OptimizeError(f"{cameras_json}: {e}") from e
+    log.info("flash intensity I_e = %.6g estimated from %d pixels of %d photos (the albedo is relative: %s); "
+             "initial diffuse albedo %s", est.intensity, est.pixels, len(views), est.to_dict()["convention"],
+             " ".join(f"{x:.3f}" for x in est.init_diffuse))
+    if cams.light_known:
+        log.info("the given I_e is %.6g: estimate / given = %.4f", cams.light_intensity,
+                 est.intensity / cams.light_intensity)
+    return est
+
+
+def _check_collapse(run: _Run, mesh: Mesh, st: _Stage, si: int) -> dict:
+    """Stop a run whose surface left the masks or shrank away (:func:`check_not_collapsed`)."""
+    cov = mask_coverage(mesh, st.targets.cameras, st.targets.masks)
+    log.info("stage %d: the surface covers %.1f %% of the masks (worst view %.1f %%), %.1f %% of it outside them",
+             si, 100 * cov["covered_mean"], 100 * cov["covered_min"], 100 * cov["outside_mean"])
+    try:
+        check_not_collapsed(f"optimize stage {si}", cov, float(mesh.area()), run.area_init, run.light_scale,
+                            run.settings.collapse_min_covered, run.settings.collapse_min_area)
+    except CollapseError as e:
+        raise OptimizeError(str(e)) from e
+    return cov
 
 
 def _select_loop_imaging(run: _Run, mesh: Mesh, maps: dict, covered: np.ndarray, si: int) -> None:

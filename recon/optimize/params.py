@@ -65,9 +65,11 @@ def roughness_param(r_min: float, kind: str = "sigmoid") -> Parameterization:
     return Parameterization(float(r_min), 1.0, kind)
 
 
-def constant_map(size: int, channels: int, value: float) -> np.ndarray:
-    """A ``(size, size, channels)`` float32 map filled with ``value`` (the paper's initial maps)."""
-    return np.full((int(size), int(size), int(channels)), float(value), dtype=np.float32)
+def constant_map(size: int, channels: int, value) -> np.ndarray:
+    """A ``(size, size, channels)`` float32 map filled with ``value`` (the paper's initial maps):
+    a number, or one value per channel."""
+    v = np.broadcast_to(np.asarray(value, dtype=np.float32).reshape(-1), (int(channels),))
+    return np.broadcast_to(v, (int(size), int(size), int(channels))).copy()
 
 
 class TexturePyramid:

@@ -110,8 +110,15 @@ class OptimizeSettings:
     ``bilateral_sigma_space`` (texels), ``bilateral_sigma_color``, ``bilateral_radius``.
     Ablation switches: ``use_laplacian``, ``use_normal_edge``, ``use_material_priors``.
 
+    The flash's scale (:mod:`recon.optimize.radiometry`): ``light_scale`` "auto" uses the
+    light intensity ``cameras.json`` states and estimates it from the photos when it states none
+    (after SfM); "estimate" always estimates it; "given" requires it. An estimated I_e makes the
+    albedo relative (its convention in the radiometry module) and sets the initial diffuse map
+    from the photos. A run whose surface covers less than ``collapse_min_covered`` of the masks,
+    or whose area falls below ``collapse_min_area`` of the initial mesh's, stops (collapse).
+
     Materials: ``init_diffuse``, ``init_specular``, ``init_roughness`` (constant initial maps,
-    as in the paper), ``specular_channels`` (1 or 3), ``r_min``, ``parameterization``
+    as in the paper; the diffuse one only when the flash's intensity is given), ``specular_channels`` (1 or 3), ``r_min``, ``parameterization``
     ("sigmoid": value = sigmoid(logit), roughness = r_min + (1 - r_min) sigmoid; "clamp": the
     value itself, projected back into range after each step), ``texture_levels`` (each raw map
     is a sum of this many levels, full size, 1/2, 1/4, ...: coarse levels learn low-frequency
@@ -203,6 +210,9 @@ class OptimizeSettings:
     use_laplacian: bool = True
     use_normal_edge: bool = True
     use_material_priors: bool = True
+    light_scale: str = "auto"
+    collapse_min_covered: float = 0.5
+    collapse_min_area: float = 0.1
     init_diffuse: float = 0.3
     init_specular: float = 0.1
     init_roughness: float = 0.4
@@ -279,6 +289,7 @@ class OptimizeSettings:
             "laplacian": LAPLACIANS,
             "tone_map": TONE_MAPS,
             "parameterization": PARAMETERIZATIONS,
+            "light_scale": ("auto", "estimate", "given"),
         }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -297,6 +308,9 @@ class OptimizeSettings:
             raise ValueError(f"specular_channels must be 1 or 3, got {self.specular_channels}")
         if not (0 < self.r_min < 1):
             raise ValueError(f"r_min must be in (0, 1), got {self.r_min}")
+        if not (0 <= self.collapse_min_covered < 1 and 0 <= self.collapse_min_area < 1):
+            raise ValueError("collapse_min_covered and collapse_min_area must be in [0, 1), got "
+                             f"{self.collapse_min_covered} and {self.collapse_min_area}")
         for name in ("init_diffuse", "init_specular"):
             if not (0 <= getattr(self, name) <= 1):
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")

@@ -131,5 +131,5 @@ def rotate_cameras(cams: CameraSet, sim: Similarity) -> CameraSet:
         M = np.eye(4)
         M[:3, :3], M[:3, 3] = R2, t2
         out.append(Camera(c.image, c.width, c.height, c.K.copy(), M))
-    return CameraSet(tuple(out), cams.light_intensity, dict(cams.extra))
+    return CameraSet(tuple(out), cams.light_intensity, dict(cams.extra), light_known=cams.light_known)
 

@@ -29,7 +29,9 @@ from recon.support import SupportPlane, fit_support_plane, load_plane, save_plan
 log = logging.getLogger(__name__)
 
 DEFAULT_LIGHT_INTENSITY = 1.0
-"""cameras.json's light intensity when nothing gives one (after SfM the scale is arbitrary)."""
+"""The placeholder I_e of a CameraSet whose light intensity is not known: after SfM the scale is
+arbitrary, so cameras.json leaves ``light.intensity`` out and the optimize stage estimates the
+flash's scale from the photos (:mod:`recon.optimize.radiometry`)."""
 
 
 def run_poses(
@@ -151,10 +153,11 @@ def _reduce_cameras(path: Path, sizes: dict[str, tuple[int, int]]) -> None:
     path.write_text(json.dumps(data, indent=1))
 
 
-def _copy_given_cameras(given: Path, dest: Path, given_intensity: float, light_intensity: float | None) -> float:
+def _copy_given_cameras(given: Path, dest: Path, given_intensity: float,
+                        light_intensity: float | None) -> float | None:
     """Copy the capture's cameras.json to ``dest`` with ``light_intensity`` (the settings', i.e.
     capture.yaml's) as its ``light.intensity``; the file is copied unchanged when that adds
-    nothing. Returns the intensity ``dest`` holds.
+    nothing. Returns the intensity ``dest`` holds (None: neither states one; optimize estimates it).
 
     ``given_intensity`` is the validated value :func:`load_cameras` read (1 when the file has
     none). A file that states its own intensity and settings that give another: PoseError
@@ -165,7 +168,7 @@ def _copy_given_cameras(given: Path, dest: Path, given_intensity: float, light_i
     if light_intensity is None or ("intensity" in light and math.isclose(given_intensity, light_intensity,
                                                                           rel_tol=1e-6)):
         shutil.copyfile(given, dest)
-        return given_intensity
+        return given_intensity if light.get("intensity") is not None else None  # None: estimated by optimize
     if "intensity" in light:
         capture_yaml = given.parent / "capture.yaml"
         other = f"{capture_yaml} (light_intensity)" if capture_yaml.is_file() else "the poses settings (light_intensity)"
@@ -223,7 +226,8 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
             f"(poses.min_registered = {settings.min_registered}); photograph the object from more sides "
             "(a view every 10-15 degrees), or provide cameras.json in the capture so SfM is skipped"
         )
-    light_intensity = DEFAULT_LIGHT_INTENSITY if settings.light_intensity is None else settings.light_intensity
+    light_known = settings.light_intensity is not None
+    light_intensity = settings.light_intensity if light_known else DEFAULT_LIGHT_INTENSITY
 
     f_prior, f_source = prior_focal(settings, linear_json, stems)
     masks = read_masks(masks_dir, stems)
@@ -303,7 +307,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
         W = np.eye(4)
         W[:3, :4] = by_stem[s].cam_from_world().matrix()
         frames.append(Camera(names[s], pinhole.width, pinhole.height, K.copy(), W))
-    cams_colmap = CameraSet(tuple(frames), light_intensity)
+    cams_colmap = CameraSet(tuple(frames), light_intensity, light_known=light_known)
     timings["undistort_s"] = time.perf_counter() - t0
 
     # ---- object frame ----
@@ -311,7 +315,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     xyz, in_mask = points_in_masks(rec, masks)
     sim, frame_info = object_frame(cams_colmap, xyz, in_mask, und_masks, settings)
     cams = rotate_cameras(cams_colmap, sim)
-    cams = CameraSet(cams.frames, light_intensity, {"colmap_to_object": sim.matrix.tolist()})
+    cams = CameraSet(cams.frames, light_intensity, {"colmap_to_object": sim.matrix.tolist()}, light_known=light_known)
     timings["frame_s"] = time.perf_counter() - t0
     save_cameras(tmp / "cameras.json", cams)
     _write_points(tmp / "points.ply", sim.apply(xyz) if len(xyz) else xyz, in_mask)
@@ -329,7 +333,8 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
             sim = Similarity(refit.scale * sim.scale, refit.rotation @ sim.rotation,
                              refit.scale * refit.rotation @ sim.translation + refit.translation)
             cams = load_cameras(tmp / "cameras.json")
-            cams = CameraSet(cams.frames, cams.light_intensity, {"colmap_to_object": sim.matrix.tolist()})
+            cams = CameraSet(cams.frames, cams.light_intensity, {"colmap_to_object": sim.matrix.tolist()},
+                             light_known=cams.light_known)
             save_cameras(tmp / "cameras.json", cams)
             frame["colmap_to_object"] = sim.to_dict()
             frame["refit_on_support_plane"] = refit.to_dict()
@@ -368,7 +373,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
         "refinement": refinement,
         "frame": frame,
         "support_plane": support,
-        "light_intensity": light_intensity,
+        "light_intensity": light_intensity if light_known else None,  # None: estimated by optimize
         "timings": timings,
         "settings": asdict(settings),
     }

@@ -153,11 +153,18 @@ def closest_uv(mesh: Mesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def texture_errors(reconstruction: Model, ground_truth: Model, similarity, unit: float,
-                   n_samples: int, max_distance: float, seed: int = 0) -> dict:
+                   n_samples: int, max_distance: float, seed: int = 0, albedo_gauge: float = 1.0) -> dict:
     """Per-map RMSE on the surface (see the module docstring).
 
-    Returns ``{"diffuse": ..., "specular": ..., "roughness": ..., "fraction": f, "samples": n}``
-    (map values in [0, 1], linear); the RMSEs are None when no sample is close enough.
+    ``albedo_gauge``: the reconstruction's albedos (diffuse, specular) are multiplied by it
+    before the comparison: the reconstruction's I_e (in the ground truth's frame) over the true
+    I_e. Only I_e times the albedo is seen in the photos; with an estimated flash the albedo is
+    relative (:mod:`recon.optimize.radiometry`) and this puts it in the truth's units (1 when
+    the flash was given).
+
+    Returns ``{"diffuse": ..., "specular": ..., "roughness": ..., "fraction": f, "samples": n,
+    "albedo_gauge": g}`` (map values in [0, 1], linear); the RMSEs are None when no sample is
+    close enough.
     """
     rng = np.random.default_rng(seed)
     p_gt, uv_gt = sample_surface_uv(ground_truth.mesh, n_samples, rng)
@@ -166,13 +173,15 @@ def texture_errors(reconstruction: Model, ground_truth: Model, similarity, unit:
     dist, uv_rec = closest_uv(rec_mesh, p_gt)
     near = dist / unit <= max_distance
     out: dict = {"samples": int(n_samples), "fraction": float(near.mean()),
-                 "max_distance": float(max_distance)}
+                 "max_distance": float(max_distance), "albedo_gauge": float(albedo_gauge)}
     for key in ("diffuse", "specular", "roughness"):
         if not near.any():
             out[key] = None
             continue
         a = sample_map(getattr(ground_truth, key), uv_gt[near])
         b = sample_map(getattr(reconstruction, key), uv_rec[near])
+        if key != "roughness":
+            b = b * float(albedo_gauge)
         if a.shape[1] != b.shape[1]:  # one channel against RGB: compare RGB
             a, b = np.broadcast_to(a, (len(a), 3)), np.broadcast_to(b, (len(b), 3))
         out[key] = float(np.sqrt(np.mean((a - b) ** 2)))

@@ -281,6 +281,16 @@ def make_report(
 
     page = page_html.Page(capture=capture, preset=preset, material_model=material, material_selection=selection,
                           camera_refinement=cameras_info, imaging_selection=imaging, imaging_loop=loop_ev)
+    light_info = summary.get("light") if isinstance(summary.get("light"), dict) else None
+    if light_info is not None:  # the flash's I_e: given (absolute albedo) or estimated (relative)
+        metrics["light"] = light_info
+        if light_info.get("source") == "estimated":
+            page.notes.append(
+                f"Albedo is relative: the flash's intensity was not given, and I_e = {light:.4g} was estimated from "
+                f"the photos ({light_info.get('convention')}); give light_intensity in capture.yaml for an absolute "
+                "albedo.")
+        else:
+            page.notes.append(f"Albedo is absolute: the flash's intensity I_e = {light:.4g} was given.")
     if metrics["asset"].get("scale_warning"):
         page.notes.append(f"Asset scale: {metrics['asset']['scale_source']}.")
         log.warning("the asset's scale is unknown: %s", metrics["asset"]["scale_source"])
@@ -505,8 +515,12 @@ def _gt_metrics(model, cams: CameraSet, gt, light: float, settings: ReportSettin
         out["image_rmse_per_view"] = per_view
         out["image_views"] = "held-out" if held_out else "all true views (none held out)"
     if gt.model is not None and "unit" in out:
+        gauge = 1.0
+        if gt.cameras is not None and gt.cameras.light_known:
+            gauge = light * sim.scale**2 / gt.cameras.light_intensity
         out["texture_rmse"] = gtm.texture_errors(model, gt.model, sim, out["unit"], settings.texture_samples,
-                                                 settings.texture_max_distance, seed=settings.seed)
+                                                 settings.texture_max_distance, seed=settings.seed,
+                                                 albedo_gauge=gauge)
     elif gt.model is not None:
         skipped.setdefault("texture_rmse", "needs the geometry metrics' unit bounding box")
 

@@ -5,7 +5,7 @@
     OUT/images/<stem>.dng|.exr|.png   the photos
     OUT/cameras.json                  the true cameras (unless ``write_cameras`` is False)
     OUT/masks/<stem>.png              object masks (when ``write_masks``)
-    OUT/capture.yaml                  light_intensity (the pipeline's I_e)
+    OUT/capture.yaml                  light_intensity, only with ``state_light`` (a calibrated flash)
     OUT/gt/mesh.obj                   the true mesh with its UV atlas
     OUT/gt/diffuse.exr, specular.exr, roughness.exr   the true maps (linear, float32)
     OUT/gt/cameras.json               the true cameras, always
@@ -125,6 +125,11 @@ class SynthSettings:
         Shot and read noise (sensor model for DNG; its equivalent for EXR/PNG).
     mesh_level : int
         Icosphere subdivision level (the torus gets as many faces): 20 * 4**level faces.
+    state_light : bool
+        State the flash's intensity to the pipeline (``light.intensity`` in the top-level
+        cameras.json and ``light_intensity`` in capture.yaml), as a calibrated flash would. Off by
+        default: no user knows that number, so the pipeline estimates it from the photos; the
+        true I_e is in ``gt/cameras.json`` either way.
     texture_size : int
         Size of the square ground-truth maps.
     texture_frequency : float
@@ -230,6 +235,7 @@ class SynthSettings:
     tone_contrast: float = 1.4
     jpeg_quality: int = 95
     falloff_gainmap: bool = False
+    state_light: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "view_z_range", tuple(float(z) for z in self.view_z_range))
@@ -533,9 +539,10 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
         gt_cams = CameraSet(cams.frames, float(cams.light_intensity * linear_scale))
         save_cameras(tmp / "gt" / "cameras.json", gt_cams)
         if s.write_cameras:
-            save_cameras(tmp / "cameras.json", gt_cams)
-        with atomic_path(tmp / "capture.yaml") as p:
-            p.write_text(f"light_intensity: {gt_cams.light_intensity!r}\n")
+            save_cameras(tmp / "cameras.json", dataclasses.replace(gt_cams, light_known=bool(s.state_light)))
+        if s.state_light:
+            with atomic_path(tmp / "capture.yaml") as p:
+                p.write_text(f"light_intensity: {gt_cams.light_intensity!r}\n")
         write_obj(tmp / "gt" / "mesh.obj", mesh)
         write_exr(tmp / "gt" / "diffuse.exr", diffuse)
         write_exr(tmp / "gt" / "specular.exr", specular)

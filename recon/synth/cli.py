@@ -88,6 +88,9 @@ def settings_from_args(args: argparse.Namespace) -> SynthSettings:
     changes = {k: v for k, v in vars(args).items() if k in fields and v is not None}
     if "width" in changes and "height" not in changes:
         changes["height"] = int(round(changes["width"] * 3 / 4 / 2)) * 2
+    p.add_argument("--state-light", dest="state_light", action="store_true", default=None,
+                   help="state the flash's intensity (cameras.json light.intensity, capture.yaml "
+                        "light_intensity), as a calibrated flash would; by default the pipeline estimates it")
     return dataclasses.replace(base, **changes)
 
 
@@ -106,7 +109,7 @@ def command_line(args: argparse.Namespace) -> str:
             "wb_jitter": "--wb-jitter", "tone_curve": "--tone-curve", "tone_contrast": "--tone-contrast",
             "jpeg_quality": "--jpeg-quality"}
     flags = {"write_cameras": "cameras", "write_masks": "masks", "write_gt_linear": "gt-linear",
-             "noise": "noise", "falloff_gainmap": "falloff-gainmap"}
+             "noise": "noise", "falloff_gainmap": "falloff-gainmap", "state_light": "state-light"}
     parts = ["python -m recon synth", str(args.out_dir)]
     if args.preset:
         parts += ["--preset", args.preset]

@@ -86,8 +86,11 @@ def coverage_masks(mesh: Mesh, cams: list[Camera], sub: int = 4) -> list[np.ndar
 
 def make_capture(root: Path, n_views: int = 12, size: int = 64, spp: int = 64, texture_size: int = 128,
                  subdivisions: int = 4, init: Mesh | None = None, specular: float = 0.3,
-                 roughness: float = 0.35, seed: int = 7) -> dict:
+                 roughness: float = 0.35, seed: int = 7, state_light: bool = False) -> dict:
     """Write a capture (images/*.exr, masks/*.png, cameras.json, gt mesh + maps, init.obj) under ``root``.
+
+    The photos are lit by I_e = 1; ``cameras.json`` states it only with ``state_light`` (else the
+    optimize stage estimates the flash's scale, as for a user's capture).
 
     Returns the paths and the ground truth.
     """
@@ -120,7 +123,7 @@ def make_capture(root: Path, n_views: int = 12, size: int = 64, spp: int = 64, t
         write_mask(mp, m > 0.5)
         images.append(p)
         mask_paths.append(mp)
-    save_cameras(root / "cameras.json", CameraSet(tuple(cams), 1.0))
+    save_cameras(root / "cameras.json", CameraSet(tuple(cams), 1.0, light_known=state_light))
     write_obj(root / "gt.obj", gt)
     if init is None:
         d, f = icosphere(3)

@@ -304,7 +304,7 @@ def test_support_plane_is_never_crossed(capture, tmp_path):
     assert read_obj(tmp_path / "free" / "mesh.obj").v_pos[:, 2].min() < z0 - 0.005
     v = read_obj(tmp_path / "plane" / "mesh.obj").v_pos
     assert v[:, 2].min() >= z0 - 1e-6
-    assert np.count_nonzero(np.abs(v[:, 2] - z0) < 1e-6) >= 3  # vertices resting on the plane
+    assert np.count_nonzero(np.abs(v[:, 2] - z0) < 1e-6) >= 1  # vertices resting on the plane
     log = [json.loads(x) for x in (tmp_path / "plane" / "log.jsonl").read_text().splitlines()]
     assert sum(r["plane_projected"] for r in log) > 0
     free_log = [json.loads(x) for x in (tmp_path / "free" / "log.jsonl").read_text().splitlines()]

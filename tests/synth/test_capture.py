@@ -35,18 +35,18 @@ def test_folder_contract(exr_capture):
     stems = [f"{i:04d}" for i in range(4)]
     expect = {f"images/{s}.exr" for s in stems} | {f"masks/{s}.png" for s in stems} \
         | {f"gt/linear/{s}.exr" for s in stems} \
-        | {"cameras.json", "capture.yaml", "gt/mesh.obj", "gt/diffuse.exr", "gt/specular.exr",
+        | {"cameras.json", "gt/mesh.obj", "gt/diffuse.exr", "gt/specular.exr",
            "gt/roughness.exr", "gt/cameras.json", "gt/synth.json", "gt/README.md"}
-    assert files == expect
+    assert files == expect  # no capture.yaml: the flash's intensity is not stated (state_light off)
     cams = load_cameras(exr_capture / "cameras.json")
     gt = load_cameras(exr_capture / "gt" / "cameras.json")
-    assert len(cams) == 4 and cams.light_intensity == gt.light_intensity == 28.0
+    assert len(cams) == 4 and gt.light_intensity == 28.0 and gt.light_known
+    assert not cams.light_known  # the pipeline estimates it, as for a user's capture
     for c, g in zip(cams, gt, strict=True):
         assert (exr_capture / c.image).is_file()
         np.testing.assert_array_equal(c.world_to_camera, g.world_to_camera)
         assert (c.width, c.height) == (40, 30)
         np.testing.assert_allclose(c.K[:2, 2], [20.0, 15.0])  # principal point at the center
-    assert "light_intensity: 28.0" in (exr_capture / "capture.yaml").read_text()
     mesh = read_obj(exr_capture / "gt" / "mesh.obj")
     assert mesh.has_uv and mesh.volume() > 0
     assert read_exr(exr_capture / "gt" / "diffuse.exr").shape == (64, 64, 3)
@@ -117,7 +117,10 @@ def test_png_capture_is_srgb_of_the_renders(tmp_path):
         np.testing.assert_allclose(srgb_to_linear(img), np.clip(linear, 0, 1), atol=2e-4)
 
 
-def test_capture_is_reproducible(tmp_path):
+def test_capture_is_reproducible(tmp_path, drjit_single_thread):
+    """The same settings give the same files byte for byte. On one drjit thread: with several,
+    the order in which a pixel's samples are added is the scheduler's, and a float32 EXR (or a
+    DNG value at a rounding boundary) can differ in its last bit between two runs."""
     s = dataclasses.replace(SMALL, format="dng", noise=True, n_views=2, write_masks=False)
     make_capture(tmp_path / "a", s)
     make_capture(tmp_path / "b", s)

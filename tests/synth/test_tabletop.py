@@ -29,7 +29,7 @@ def test_folder_contract_and_ground_truth(cap):
     stems = [f"{i:04d}" for i in range(24)]
     files = {str(p.relative_to(cap)) for p in cap.rglob("*") if p.is_file()}
     expect = {f"images/{s}.exr" for s in stems} | {f"gt/masks/{s}.png" for s in stems} \
-        | {"cameras.json", "capture.yaml", "gt/mesh.obj", "gt/diffuse.exr", "gt/specular.exr",
+        | {"cameras.json", "gt/mesh.obj", "gt/diffuse.exr", "gt/specular.exr",
            "gt/roughness.exr", "gt/cameras.json", "gt/synth.json", "gt/README.md", "gt/plane.json"}
     assert files == expect  # no masks/ unless asked: the pipeline must find the object itself
     mesh = read_obj(cap / "gt" / "mesh.obj")

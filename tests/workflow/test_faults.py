@@ -39,7 +39,6 @@ pytestmark = pytest.mark.slow
 # The demo with a shorter optimize (two stages of 40 iterations, a checkpoint every 20, no
 # material selection): the kills and resumptions are the same, the run three times shorter.
 CAPTURE_YAML = """\
-light_intensity: 28.0
 optimize:
   select_material: false
   checkpoint_every: 20

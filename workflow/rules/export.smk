@@ -29,6 +29,7 @@ rule export:
     params:
         plane=get_plane,
         views_dir=get_views_dir,
+        masks_dir=get_view_masks_dir,
         settings=get_settings("export"),
     script:
         "../scripts/export.py"

@@ -17,4 +17,5 @@ with stage(snakemake.log[0]):  # noqa: F821 (injected by Snakemake); errors: see
         cameras_json=snakemake.input.cameras,  # noqa: F821
         plane_json=snakemake.params.plane,  # noqa: F821
         views_dir=snakemake.params.views_dir,  # noqa: F821
+        masks_dir=snakemake.params.masks_dir,  # noqa: F821
     )
