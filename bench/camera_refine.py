@@ -52,6 +52,8 @@ from recon.metrics import align_cameras, chamfer, pose_errors, rotation_angle_de
 from recon.optimize import optimize_capture, settings_from_dict  # noqa: E402
 from recon.optimize.camera_refine import CameraRefinement, rotation_exp  # noqa: E402
 
+STATE_LIGHT = False  # --state-light
+
 log = logging.getLogger("bench.camera_refine")
 
 LEVELS = {"exact": (0.0, 0.0), "0.2deg-0.5pct": (0.2, 0.5), "0.5deg-1pct": (0.5, 1.0), "1deg-2pct": (1.0, 2.0)}
@@ -175,13 +177,14 @@ def sfm_inputs(cap: Path, work: Path, lin: Path, poses_settings: dict | None = N
     secs = time.perf_counter() - t0
     cams = load_cameras(poses / "cameras.json")
     # SfM's frame has its own scale s (true = s * sfm): the collocated light of the true
-    # intensity I falls off with the true distances, I / (s d)^2 = (I / s^2) / d^2, so the SfM
-    # frame's cameras.json gets I / s^2 (the light a capture.yaml would give in those units),
-    # so that only the cameras differ from the exact-camera runs
+    # intensity I falls off with the true distances, I / (s d)^2 = (I / s^2) / d^2. Until issue 31
+    # the SfM frame's cameras.json got I / s^2 here by hand (a number no user has); with
+    # --state-light it still does (the old measurement), by default the optimize stage estimates I_e
     gt = load_cameras(cap / "gt" / "cameras.json")
     s = align_cameras(cams, gt).scale
     cj = work / "cameras.json"
-    save_cameras(cj, CameraSet(cams.frames, gt.light_intensity / s**2, cams.extra))
+    save_cameras(cj, CameraSet(cams.frames, gt.light_intensity / s**2, cams.extra,
+                               light_known=STATE_LIGHT))
     und = poses / "undistorted"
     return cj, [und / f"{c.stem}.exr" for c in cams.frames], \
         [und / "masks" / f"{c.stem}.png" for c in cams.frames], secs
@@ -273,10 +276,15 @@ def main(argv=None) -> int:
     p.add_argument("--poses-set", action="append", default=[],
                    help="key=value (YAML) of the poses settings for the SfM row (its name and folder: sfm-key=value)")
     p.add_argument("--seed", type=int, default=1, help="seed of the perturbations")
+    p.add_argument("--state-light", action="store_true",
+                   help="give the SfM runs the true flash intensity in SfM's frame (the measurements before "
+                        "issue 31); by default the optimize stage estimates it")
     p.add_argument("--reuse", action="store_true", help="measure the finished runs in --out again, run the others")
     p.add_argument("--evaluate-only", action="store_true",
                    help="measure the runs already in --out again (no optimization; e.g. after a metric was added)")
     args = p.parse_args(argv)
+    global STATE_LIGHT
+    STATE_LIGHT = bool(args.state_light)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     for name in ("recon.optimize.remesh", "recon.optimize.guard"):
         logging.getLogger(name).setLevel(logging.WARNING)
