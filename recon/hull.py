@@ -77,28 +77,75 @@ def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return out.reshape(-1)[:n]
 
 
+def votes_needed(seen: np.ndarray, outside_fraction: float) -> np.ndarray:
+    """How many "outside" votes carve a voxel seen by ``seen`` views: ``1 + floor(f * seen)``.
+
+    A voxel is carved when more than the fraction ``f`` of the views that see it put it outside
+    their mask. ``f = 0`` is the strict visual hull (one view carves); with ``f = 0.1`` one
+    wrong view cannot carve a voxel that 10 or more views see, two cannot below 20, and so on,
+    while with fewer than 10 views the hull stays strict (there is no majority to outvote an
+    error with).
+    """
+    return 1 + np.floor(float(outside_fraction) * np.asarray(seen, np.float64) + 1e-9).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class HullFields:
+    """The visual hull's distance fields on a grid (each (R, R, R) float32, world units,
+    positive inside) and how many views see each voxel (int16)."""
+
+    voted: np.ndarray  # the k-th smallest view distance, k the votes needed (the vote's hull)
+    strict: np.ndarray  # the smallest (the intersection of all cones, the strict hull)
+    seen: np.ndarray
+
+
 def silhouette_field(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid, min_views: int = 2,
-                     margin_px: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """Visual-hull distance field on ``grid``.
+                     margin_px: float = 0.5, outside_fraction: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Visual-hull distance field on ``grid``, by vote over the views: ``(voted, seen)`` of
+    :func:`silhouette_fields` (see there)."""
+    h = silhouette_fields(cams, masks, grid, min_views, margin_px, outside_fraction)
+    return h.voted, h.seen
+
+
+def silhouette_fields(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid, min_views: int = 2,
+                      margin_px: float = 0.5, outside_fraction: float = 0.0) -> HullFields:
+    """Visual-hull distance fields on ``grid``, by vote over the views and strict.
 
     Parameters
     ----------
     cams : cameras (pinhole, OpenCV axes); views without a mask are skipped.
     masks : stem -> (H, W) bool, the size of the camera's image.
+    grid : the voxel centers.
+    min_views : voxels seen by fewer views count as outside.
+    margin_px : the silhouettes are grown by this many pixels.
+    outside_fraction : the vote (:func:`votes_needed`): a voxel is outside when more than this
+        fraction of the views that see it say so. A view sees a voxel when the voxel projects
+        into its frame, in front of it; the others abstain, so an object cut by the frame edge
+        is not carved by the views that miss part of it. 0: the strict hull (every view carves).
 
     Returns
     -------
-    field : (R, R, R) float32
-        Approximate distance to the hull surface in world units, positive inside.
+    :class:`HullFields` with
+    voted : (R, R, R) float32
+        Approximate distance to the hull surface in world units, positive inside: per voxel the
+        k-th smallest of the views' signed distances to their silhouette cones, k the votes
+        needed (k = 1: the minimum, the intersection of the cones). Its zero level set is where
+        the k-th view's cone boundary passes, so it is placed to sub-voxel precision too.
+    strict : (R, R, R) float32
+        The same with k = 1 (equal to ``voted`` when ``outside_fraction`` is 0).
     seen : (R, R, R) int16
         How many views see each voxel.
 
-    Voxels seen by fewer than ``min_views`` views count as outside; the silhouettes are grown by
-    ``margin_px`` pixels. Raises :class:`HullError` for a mask whose size is not its camera's and
-    for fewer than 2 views with a mask.
+    Raises :class:`HullError` for a mask whose size is not its camera's and for fewer than 2
+    views with a mask.
     """
+    if not 0.0 <= outside_fraction < 0.5:
+        raise ValueError(f"outside_fraction must be in [0, 0.5), got {outside_fraction}")
     pts = grid.points().astype(np.float32)
-    field = np.full(len(pts), np.inf, np.float32)
+    n_views = sum(1 for cam in cams if cam.stem in masks)
+    kmax = int(votes_needed(n_views, outside_fraction))
+    # the kmax smallest signed distances per voxel, ascending (row 0 = the minimum)
+    low = np.full((kmax, len(pts)), np.inf, np.float32)
     seen = np.zeros(len(pts), np.int16)
     used = 0
     for cam in cams:
@@ -109,7 +156,7 @@ def silhouette_field(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid, 
             raise HullError(f"mask of {cam.stem} is {mask.shape[::-1]} but its camera is {cam.width}x{cam.height}")
         used += 1
         sd = _signed_distance_px(mask) + np.float32(margin_px)
-        alive = np.flatnonzero(field > -4 * grid.step)  # far-outside voxels stay outside
+        alive = np.flatnonzero(low[-1] > -4 * grid.step)  # outside at any vote: stays outside
         P = (cam.K @ cam.world_to_camera[:3, :]).astype(np.float32)  # (3, 4) projection
         h = pts[alive] @ P[:, :3].T + P[:, 3]
         z = h[:, 2]
@@ -119,13 +166,23 @@ def silhouette_field(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid, 
         inimg = front & (x >= 0) & (x < cam.width) & (y >= 0) & (y < cam.height)
         sel = np.flatnonzero(inimg)
         f = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
-        d_world = bilinear(sd, x[sel], y[sel]) * (z[sel] / np.float32(f))
+        d = bilinear(sd, x[sel], y[sel]) * (z[sel] / np.float32(f))
         idx = alive[sel]
-        field[idx] = np.minimum(field[idx], d_world)
+        for r in range(kmax):  # insert d into the sorted rows
+            cur = low[r, idx]
+            low[r, idx] = np.minimum(cur, d)
+            d = np.maximum(cur, d)
         seen[idx] += 1
     if used < 2:
         raise HullError(f"a visual hull needs masks for at least 2 views, found {used}")
-    field[seen < min_views] = -np.inf
-    field = np.where(np.isfinite(field), field, np.where(field > 0, 4 * grid.step, -4 * grid.step))
+    k = np.minimum(votes_needed(seen, outside_fraction), kmax)
     r = grid.resolution
-    return field.reshape(r, r, r).astype(np.float32), seen.reshape(r, r, r)
+
+    def finish(field):
+        field[seen < min_views] = -np.inf
+        field = np.where(np.isfinite(field), field, np.where(field > 0, 4 * grid.step, -4 * grid.step))
+        return field.reshape(r, r, r).astype(np.float32)
+
+    voted = finish(np.take_along_axis(low, (k - 1)[None, :], axis=0)[0])
+    strict = finish(low[0].copy()) if kmax > 1 else voted
+    return HullFields(voted, strict, seen.reshape(r, r, r))

@@ -8,6 +8,11 @@
   then lowered and the atlas packed again until it fits, so the padding holds in texels of
   the real texture (a bilinear lookup anywhere inside a chart touches only that chart's
   texels when padding >= 2).
+- When no texel density fits ``texture_size`` (a surface of many small charts: each needs
+  ``padding`` texels around it, so their padding alone can fill a small map), the map doubles
+  up to ``max_texture_size`` and the atlas is packed for that (``texture_size`` in ``uv.json``,
+  with a warning). The stage stops only when even that map cannot hold the charts, naming their
+  number (a surface with that many tunnels or fragments is the initial mesh's problem).
 - xatlas sees the mesh scaled to a unit bounding box (its float32 epsilons are absolute), so
   the atlas is the same in any units; ``texels_per_unit`` is reported in the mesh's units.
 - Positions keep their topology: xatlas splits vertices at seams, but ``t_pos_idx`` maps back
@@ -45,11 +50,19 @@ class UVSettings:
     padding: int = 4  # empty texels between charts (>= 2 for bilinear lookups)
     min_component_faces: int = 16
     min_component_area: float = 1e-4  # fraction of the total area
-    max_pack_attempts: int = 6
+    max_pack_attempts: int = 6  # packings per map size (lowering the texel density each time)
+    # the map grows (doubling) up to this side when the charts cannot fit texture_size: the
+    # padding around each of many small charts (a surface with many tunnels) fills a small map
+    # whatever the texel density. uv.json records the size used (the optimize stage makes its
+    # own atlas for its own maps; this one is the initial mesh's)
+    max_texture_size: int = 4096
 
     def __post_init__(self):
         if self.texture_size < 16:
             raise ValueError(f"texture_size must be >= 16, got {self.texture_size}")
+        if self.max_texture_size < self.texture_size:
+            raise ValueError(f"max_texture_size ({self.max_texture_size}) must be >= texture_size "
+                             f"({self.texture_size})")
         if self.padding < 2:
             raise ValueError(f"padding must be >= 2 texels for bilinear lookups, got {self.padding}")
 
@@ -81,8 +94,15 @@ def drop_small_components(mesh: Mesh, min_faces: int, min_area_fraction: float) 
     return Mesh(mesh.v_pos[used], remap[f]), dropped
 
 
+def _min_texels_per_chart(padding: int) -> int:
+    """The least area one chart takes in a packed atlas: a texel, the bilinear border and
+    ``padding`` empty texels on each side."""
+    return (2 * int(padding) + 3) ** 2
+
+
 def pack_atlas(v_pos: np.ndarray, t_pos_idx: np.ndarray, texture_size: int, padding: int, *,
-               fill: float | None = None, max_attempts: int = 6) -> tuple[np.ndarray, np.ndarray, dict]:
+               fill: float | None = None, max_attempts: int = 6,
+               max_texture_size: int | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """xatlas charts of a mesh packed into one ``texture_size`` x ``texture_size`` map.
 
     The one place the project calls xatlas (the uv stage, coarse-to-fine remeshing and the
@@ -95,8 +115,13 @@ def pack_atlas(v_pos: np.ndarray, t_pos_idx: np.ndarray, texture_size: int, padd
     padding : empty texels between charts, in texels of the T map.
     fill : fraction of the map the charts should cover at the first attempt (sets xatlas's texel
         density from the surface area); None lets xatlas choose from ``texture_size``.
-    max_attempts : packings tried; after an atlas larger than T or on more than one page (its
-        UVs would overlap the first), the texel density is lowered and the charts packed again.
+    max_attempts : packings tried per map size; after an atlas larger than T or on more than one
+        page (its UVs would overlap the first), the texel density is lowered and the charts
+        packed again.
+    max_texture_size : the map may grow (doubling T) up to this side when the charts do not fit
+        T: a surface of many small charts (a high genus) needs ``padding`` texels around each
+        chart whatever the texel density, so below some T no density fits. None: T is fixed
+        (a caller whose maps are T x T); the error then names the chart count.
 
     Returns
     -------
@@ -104,11 +129,13 @@ def pack_atlas(v_pos: np.ndarray, t_pos_idx: np.ndarray, texture_size: int, padd
         u = (j + 0.5)/T, v = 1 - (i + 0.5)/T; the atlas sits in the map's top-left corner.
     t_tex_idx : (F, 3) UV indices per face (vertices split at seams).
     stats : ``charts``, ``utilization``, ``atlas_width``/``atlas_height`` (texels used),
-        ``texels_per_unit`` (per unit of the mesh's frame), ``attempts``.
+        ``texels_per_unit`` (per unit of the mesh's frame), ``attempts`` (packings in all),
+        ``texture_size`` (the map's side T the UVs refer to: the requested one unless it grew).
     """
     import xatlas
 
     T = int(texture_size)
+    T_max = T if max_texture_size is None else max(T, int(max_texture_size))
     v64 = np.asarray(v_pos, dtype=np.float64)
     f = np.asarray(t_pos_idx, dtype=np.int64)
     if len(f) == 0:
@@ -125,32 +152,59 @@ def pack_atlas(v_pos: np.ndarray, t_pos_idx: np.ndarray, texture_size: int, padd
     v_unit = (v64 - 0.5 * (lo + hi)) / extent
     v32 = v_unit.astype(np.float32)
     f32 = f.astype(np.uint32)
-    tpu = 0.0  # 0: xatlas chooses from the resolution
-    if fill is not None:
-        p = v_unit[f]
-        area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
-        tpu = float(np.sqrt(fill * T * T / area)) if area > 0 else 0.0
-    for attempt in range(1, int(max_attempts) + 1):  # noqa: B007 (reported below)
-        atlas = xatlas.Atlas()
-        atlas.add_mesh(v32, f32)
-        pack = xatlas.PackOptions()
-        pack.resolution = T
-        pack.padding = int(padding)
-        pack.bilinear = True
-        if tpu > 0:
-            pack.texels_per_unit = tpu
-        atlas.generate(xatlas.ChartOptions(), pack)
-        w, h = int(atlas.width), int(atlas.height)
-        # one page only: with texels_per_unit set, xatlas may spill charts onto a second page
-        if max(w, h) <= T and atlas.atlas_count == 1:
+    p = v_unit[f]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
+
+    def first_density(size: int) -> float:  # 0: xatlas chooses from the resolution
+        return float(np.sqrt(fill * size * size / area)) if fill is not None and area > 0 else 0.0
+
+    tpu = first_density(T)
+    attempts = 0
+    charts = 0
+    fitted = False
+    while not fitted:
+        for _ in range(int(max_attempts)):
+            attempts += 1
+            atlas = xatlas.Atlas()
+            atlas.add_mesh(v32, f32)
+            pack = xatlas.PackOptions()
+            pack.resolution = T
+            pack.padding = int(padding)
+            pack.bilinear = True
+            if tpu > 0:
+                pack.texels_per_unit = tpu
+            atlas.generate(xatlas.ChartOptions(), pack)
+            w, h, pages, charts = int(atlas.width), int(atlas.height), int(atlas.atlas_count), int(atlas.chart_count)
+            # one page only: with texels_per_unit set, xatlas may spill charts onto a second page
+            if max(w, h) <= T and pages == 1:
+                fitted = True
+                break
+            if charts * _min_texels_per_chart(padding) > 0.8 * T * T:
+                log.debug("%d charts with %d-texel padding cannot fit a %d-texel map at any density", charts,
+                          padding, T)
+                break  # no density helps: the padding alone fills the map
+            if pages > 1:  # the charts need about `pages` maps: shrink their area as much
+                shrink = min(0.85, 0.95 / np.sqrt(pages))
+            else:
+                shrink = (T / max(w, h) if max(w, h) > T else 1.0) * 0.97
+            tpu = float(atlas.texels_per_unit) * shrink
+            log.debug("atlas %dx%d on %d page(s) does not fit one %d-texel page: packing again at %.2f "
+                      "texels per unit", w, h, pages, T, tpu)
+        if fitted:
             break
-        shrink = T / max(w, h) if max(w, h) > T else 1.0
-        tpu = float(atlas.texels_per_unit) * shrink * (0.97 if atlas.atlas_count == 1 else 0.85)
-        log.debug("atlas %dx%d on %d page(s) does not fit one %d-texel page: packing again at %.2f "
-                  "texels per unit", w, h, atlas.atlas_count, T, tpu)
-    else:
-        raise UVError(f"xatlas could not fit the charts into {T}x{T} texels in {max_attempts} attempts; "
-                      "raise texture_size or lower padding")
+        if 2 * T > T_max:
+            need = charts * _min_texels_per_chart(padding)
+            what = (f"{charts} charts with {padding}-texel padding need at least {need} texels, "
+                    f"{need / (T * T):.0%} of a {T}x{T} map" if need > 0.8 * T * T
+                    else f"{charts} charts did not fit in {attempts} packings")
+            raise UVError(f"xatlas could not fit the atlas into {T}x{T} texels: {what}. A surface with that many "
+                          "charts has many tunnels or fragments (see the initial mesh's genus)")
+        T *= 2
+        while charts * _min_texels_per_chart(padding) > 0.4 * T * T and 2 * T <= T_max:
+            T *= 2  # room for the padding and as much again for the charts themselves
+        tpu = first_density(T)
+        log.warning("the atlas's %d charts do not fit the map with %d-texel padding: growing the map to %dx%d",
+                    charts, padding, T, T)
     vmapping, indices, uv_norm = atlas[0]
     indices = np.asarray(indices, dtype=np.int64)
     if indices.shape != f.shape or not np.array_equal(np.asarray(vmapping, dtype=np.int64)[indices], f):
@@ -158,12 +212,13 @@ def pack_atlas(v_pos: np.ndarray, t_pos_idx: np.ndarray, texture_size: int, padd
     texel = np.asarray(uv_norm, dtype=np.float64) * np.array([w, h])  # atlas texels (x right, y down)
     v_tex = np.stack([texel[:, 0] / T, 1.0 - texel[:, 1] / T], axis=1)
     stats = {
-        "charts": int(atlas.chart_count),
+        "charts": charts,
         "utilization": float(atlas.utilization),
         "atlas_width": w,
         "atlas_height": h,
         "texels_per_unit": float(atlas.texels_per_unit) / extent,  # per unit of the mesh's frame
-        "attempts": attempt,
+        "attempts": attempts,
+        "texture_size": T,
     }
     return v_tex, indices, stats
 
@@ -176,7 +231,8 @@ def unwrap(mesh: Mesh, settings: UVSettings = UVSettings()) -> tuple[Mesh, dict]
     mesh : Mesh with ``v_tex (T, 2)`` and ``t_tex_idx (F, 3)``; ``v_pos``/``t_pos_idx`` are the
         input's (minus dropped components).
     stats : dict with ``charts``, ``utilization``, ``atlas_width``/``atlas_height`` (texels
-        used in the map), ``texels_per_unit``, ``dropped_components``, ``attempts``.
+        used in the map), ``texels_per_unit``, ``dropped_components``, ``attempts``,
+        ``texture_size`` (the map the UVs refer to) and ``requested_texture_size``.
     """
     if len(mesh.t_pos_idx) == 0:
         raise UVError("the mesh has no faces")
@@ -186,13 +242,14 @@ def unwrap(mesh: Mesh, settings: UVSettings = UVSettings()) -> tuple[Mesh, dict]
     if dropped:
         log.info("dropped %d small component(s) before unwrapping", dropped)
     v_tex, t_tex_idx, pack = pack_atlas(mesh.v_pos, mesh.t_pos_idx, settings.texture_size, settings.padding,
-                                        max_attempts=settings.max_pack_attempts)
+                                        max_attempts=settings.max_pack_attempts,
+                                        max_texture_size=settings.max_texture_size)
     if pack["attempts"] > 1:
         log.info("atlas packed in %d attempts at %.2f texels per unit", pack["attempts"], pack["texels_per_unit"])
     out = Mesh(mesh.v_pos, mesh.t_pos_idx, v_tex, t_tex_idx)
     stats = {
         **pack,
-        "texture_size": settings.texture_size,
+        "requested_texture_size": settings.texture_size,
         "padding": settings.padding,
         "dropped_components": dropped,
         "faces": int(len(out.t_pos_idx)),

@@ -51,3 +51,62 @@ def test_silhouette_field_rejects_unusable_masks():
         hull.silhouette_field(cams, {"00": np.ones((16, 16), bool), "01": np.ones((32, 32), bool)}, grid)
     with pytest.raises(hull.HullError, match="needs masks for at least 2 views, found 1"):
         hull.silhouette_field(cams, {"00": np.ones((32, 32), bool)}, grid)
+
+
+def test_votes_needed():
+    """A voxel is carved when more than the fraction of the views that see it say outside."""
+    seen = np.array([0, 1, 2, 9, 10, 19, 20, 33, 66])
+    np.testing.assert_array_equal(hull.votes_needed(seen, 0.0), 1)  # strict: one view carves
+    np.testing.assert_array_equal(hull.votes_needed(seen, 0.1), [1, 1, 1, 1, 2, 2, 3, 4, 7])
+    with pytest.raises(ValueError, match="outside_fraction"):
+        hull.silhouette_fields(_ring(n=4, res=16), {}, hull.Grid.cube(np.zeros(3), 1.0, 4), outside_fraction=0.5)
+
+
+def test_one_wrong_view_cannot_carve_the_vote():
+    """A hole through the middle of one view's mask: the strict hull has a tunnel along that
+    view's rays, the vote (16 views, 10 %: two views must agree) does not."""
+    sphere = _sphere(0.5)
+    cams = _ring(n=16, res=128)
+    masks = {c.stem: silhouette(sphere, c) for c in cams}
+    bad = cams.frames[5]
+    i, j = np.mgrid[:128, :128]
+    masks[bad.stem] = masks[bad.stem] & ((i - 64) ** 2 + (j - 64) ** 2 > 10**2)
+    grid = hull.Grid.cube(np.zeros(3), 0.6, 24)
+    h = hull.silhouette_fields(cams, masks, grid, outside_fraction=0.1)
+    pts = grid.points()
+    # the voxels on the bad view's central ray, well inside the sphere
+    ray = bad.center / np.linalg.norm(bad.center)
+    on_ray = (np.linalg.norm(np.cross(pts, ray), axis=1) < 0.03) & (np.linalg.norm(pts, axis=1) < 0.35)
+    assert on_ray.sum() >= 4
+    assert np.all(h.strict.ravel()[on_ray] < 0)  # the strict hull is carved there
+    assert np.all(h.voted.ravel()[on_ray] > 0.1)  # the vote is not
+    # elsewhere the vote is the hull of the 15 right views and the strict field never exceeds it
+    assert np.all(h.strict <= h.voted)
+    right = {k: v for k, v in masks.items() if k != bad.stem}
+    strict15, _ = hull.silhouette_field(cams, right, grid)
+    inside = strict15 > 0
+    assert np.mean(h.voted[inside] > 0) > 0.99
+    # with the fraction 0 both fields are the strict hull
+    h0 = hull.silhouette_fields(cams, masks, grid)
+    np.testing.assert_array_equal(h0.voted, h0.strict)
+    far = -4 * grid.step  # voxels farther outside are no longer updated: equal up to that
+    np.testing.assert_array_equal(np.maximum(h0.strict, far), np.maximum(h.strict, far))
+
+
+def test_views_that_do_not_see_a_voxel_abstain():
+    """An object cut by the frame edge in some views: those views neither carve nor count
+    the part outside their frame."""
+    sphere = _sphere(0.5)
+    cams = list(_ring(n=12, res=96))
+    # a close-up of one side: the sphere overflows its frame
+    close = Camera("images/zz.png", 96, 96, intrinsics(96, 96, 40), look_at([1.0, 0.0, 0.0], [0.0, 0.0, 0.0]))
+    cams = CameraSet(tuple(cams) + (close,))
+    masks = {c.stem: silhouette(sphere, c) for c in cams}
+    assert masks["zz"].all()  # the close-up sees the sphere everywhere in its frame
+    grid = hull.Grid.cube(np.zeros(3), 0.6, 20)
+    pts = grid.points()
+    inside = np.linalg.norm(pts, axis=1) < 0.4
+    for fraction in (0.0, 0.1):  # even the strict hull: a view that does not see a voxel cannot carve it
+        field, seen = hull.silhouette_field(cams, masks, grid, outside_fraction=fraction)
+        assert np.all(field.ravel()[inside] > 0)
+        assert seen.max() == 13 and seen.ravel()[inside].min() == 12  # not all seen by the close-up

@@ -116,3 +116,54 @@ def test_atlas_does_not_depend_on_units(blob, scale):
     np.testing.assert_allclose(out.v_tex, ref.v_tex, atol=1e-6)
     assert stats["charts"] == ref_stats["charts"] and stats["attempts"] == ref_stats["attempts"]
     assert stats["texels_per_unit"] == pytest.approx(ref_stats["texels_per_unit"] / scale, rel=1e-6)
+
+
+def _porous_sphere(res: int = 32) -> Mesh:
+    """A ball (radius 0.5) drilled by 27 tunnels along the three axes (genus 29): the kind of
+    surface a visual hull with one view's mask errors became on the real skull (genus 27-86).
+    xatlas cuts it into hundreds of small charts."""
+    from recon.hull import Grid
+    from recon.init_mesh import isosurface, largest_component
+
+    grid = Grid.cube(np.zeros(3), 0.6, res)
+    p = grid.points()
+    sdf = 0.5 - np.linalg.norm(p, axis=1)
+    for ax in range(3):
+        u, w = [a for a in range(3) if a != ax]
+        for a in (-0.3, 0.0, 0.3):
+            for b in (-0.3, 0.0, 0.3):
+                sdf = np.minimum(sdf, np.hypot(p[:, u] - a, p[:, w] - b) - 0.06)
+    return largest_component(isosurface(sdf.reshape(res, res, res).astype(np.float32), grid))
+
+
+def test_atlas_grows_when_the_charts_cannot_fit(caplog):
+    """Regression: on the real skull's hull (genus 27) the stage stopped with "xatlas could not
+    fit the charts into 256x256 texels in 6 attempts; raise texture_size or lower padding": the
+    4-texel padding around each of hundreds of charts fills a 256^2 map at any texel density, so
+    lowering the density cannot help (and no setting of the user's should be needed). The map
+    now grows until the charts fit, with a warning, and uv.json says which size it is."""
+    mesh = _porous_sphere()
+    from recon.init_mesh import topology
+
+    assert topology(mesh)["genus"] > 20
+    settings = ruv.UVSettings(texture_size=256, padding=4)
+    with caplog.at_level("WARNING", logger="recon.uv"):
+        out, stats = ruv.unwrap(mesh, settings)
+    T = stats["texture_size"]
+    assert stats["requested_texture_size"] == 256 and T in (512, 1024)
+    assert stats["charts"] * 11**2 > 0.8 * 256**2  # the padding alone would fill the requested map
+    assert "growing the map" in caplog.text
+    np.testing.assert_array_equal(out.t_pos_idx, mesh.t_pos_idx)  # positions untouched
+    assert out.v_tex.min() >= 0 and out.v_tex.max() <= 1
+    assert max(stats["atlas_width"], stats["atlas_height"]) <= T
+    # the padding holds in texels of the grown map: bilinear lookups stay in their chart
+    texels, owners = _bilinear_texels(out, T)
+    order = np.lexsort((owners, texels))
+    texels, owners = texels[order], owners[order]
+    assert not np.any((texels[1:] == texels[:-1]) & (owners[1:] != owners[:-1]))
+    # a caller whose map size is fixed gets an error that names the real condition
+    with pytest.raises(ruv.UVError, match=r"into 256x256 texels: \d+ charts with 4-texel padding need at least "
+                                          r"\d+ texels.*many tunnels or fragments"):
+        ruv.unwrap(mesh, ruv.UVSettings(texture_size=256, padding=4, max_texture_size=256))
+    with pytest.raises(ValueError, match="max_texture_size"):
+        ruv.UVSettings(texture_size=512, max_texture_size=256)
