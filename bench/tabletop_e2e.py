@@ -24,6 +24,14 @@ and no masks in the captures unless ``--given-cameras``):
      height of its lowest point above y = 0 (relative to the object's height), and its scale
      source.
 
+``--phone``: the photos as a phone makes them (JPEG with a tone curve that is not sRGB, the flash
+1 cm beside the lens, per-view exposure error and EXIF exposure changes, ambient light, lens
+falloff, white-balance jitter; bench/phone_geometry.py's PHONE). ``--given-masks``: the true
+masks in ``masks/`` (else the masks stage finds the object). No capture states the flash's
+intensity (issue 31): the optimize stage estimates it; the table gives the estimate against the
+truth in SfM's frame (I_e s^2 / I_true, s the frame's scale) beside what the convention predicts
+(the true diffuse map's 98th percentile over 0.85), the imaging terms kept and the material model.
+
 Prints a table (tabletop beside void per object, ratio of final accuracy) and writes
 ``<out>/tabletop_e2e.json``; ``--docs FILE`` writes the markdown table there.
 
@@ -62,11 +70,16 @@ log = logging.getLogger("bench.tabletop_e2e")
 SCENES = ("tabletop", "tabletop_void")
 
 
+PHONE = {"format": "jpg", "tone_curve": "phone", "flash_offset": (0.19, 0.0, 0.0), "exposure_jitter": 0.25,
+         "exposure_variation": 0.5, "ambient": 0.1, "falloff": (-0.35, 0.0), "wb_jitter": 0.02}
+
+
 def capture_settings(obj: str, scene: str, args):
     base = PRESETS[f"tabletop-{obj}"]
     h = int(round(args.res * 3 / 4 / 2)) * 2
-    return dataclasses.replace(base, scene=scene, n_views=args.views, width=args.res, height=h, spp=args.spp,
-                               write_cameras=args.given_cameras, write_masks=False, write_gt_linear=False)
+    s = dataclasses.replace(base, scene=scene, n_views=args.views, width=args.res, height=h, spp=args.spp,
+                            write_cameras=args.given_cameras, write_masks=args.given_masks, write_gt_linear=False)
+    return dataclasses.replace(s, **PHONE) if args.phone else s
 
 
 def snakemake(captures: Path, results: Path, targets: list[str], preset: str) -> float:
@@ -223,7 +236,18 @@ def measure(cap: Path, res: Path, rng_seed: int = 0) -> dict:
         out["asset"] = asset_placement(glb, load_plane(cap / "gt" / "plane.json"), sim, fm)
     summary = res / "optimize" / "summary.json"
     if summary.is_file():
-        out["optimize_seconds"] = json.loads(summary.read_text()).get("wall_seconds")
+        s = json.loads(summary.read_text())
+        out["optimize_seconds"] = s.get("wall_seconds")
+        light = s.get("light") or {}
+        d = gt_maps["diffuse"].reshape(-1, 3)
+        out["light"] = {"source": light.get("source"), "estimate": light.get("intensity"),
+                        # the estimate in the true frame over the true I_e, and what the convention predicts
+                        "ratio_to_true": (light["intensity"] * sim.scale**2 / true.light_intensity
+                                          if light.get("intensity") else None),
+                        "convention_predicts": float(np.percentile(d[d.max(1) > 0].max(1), 98) / 0.85)}
+        loop = s.get("imaging_loop") or {}
+        out["imaging_terms"] = loop.get("chosen") if loop else (s.get("imaging_model") or [])
+        out["material_model"] = s.get("material_model_label")
     out["stage_seconds"] = stage_seconds(res)
     return out
 
@@ -244,14 +268,14 @@ def _f(x, spec=".4f"):
 def table(results: dict) -> str:
     rows = ["| object | scene | registered | rot. err. (deg) | centre err. | mask IoU mean / min | init acc. / compl. "
             "| final acc. / compl. | final acc. / void's | far (>2% / >5%) / table or background | novel-view RMSE "
-            "| asset up err. (deg) / base y |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            "| asset up err. (deg) / base y | I_e est. / true (convention) | imaging terms | material |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for obj, r in results.items():
         void_acc = r.get("tabletop_void", {}).get("final", {}).get("accuracy")
         for scene in SCENES:
             m = r.get(scene, {})
             if "registered" not in m:
-                rows.append(f"| {obj} | {scene} | {m.get('error', '-')} |" + " - |" * 9)
+                rows.append(f"| {obj} | {scene} | {m.get('error', '-')} |" + " - |" * 12)
                 continue
             p = m["pose"]
             i, f = m.get("init", {}), m.get("final", {})
@@ -265,7 +289,9 @@ def table(results: dict) -> str:
                 f"| {_f(f.get('accuracy'))} / {_f(f.get('completeness_seen'))} | {_f(ratio, '.2f')} "
                 f"| {_f(f.get('far_2pct'), '.2%')} / {_f(f.get('far_5pct'), '.2%')} / {_f(f.get('outside_2pct'), '.2%')} "
                 f"| {_f(m.get('novel_view_rmse'))} "
-                f"| {_f(a.get('up_error_deg'), '.2f')} / {_f(a.get('base_y_over_height'), '.4f')} |")
+                f"| {_f(a.get('up_error_deg'), '.2f')} / {_f(a.get('base_y_over_height'), '.4f')} "
+                f"| {_f(m.get('light', {}).get('ratio_to_true'), '.3f')} ({_f(m.get('light', {}).get('convention_predicts'), '.3f')}) "
+                f"| {', '.join(m.get('imaging_terms') or []) or 'none'} | {m.get('material_model') or '-'} |")
     return "\n".join(rows)
 
 
@@ -280,6 +306,8 @@ def main(argv=None) -> int:
     p.add_argument("--spp", type=int, default=32)
     p.add_argument("--preset", default="draft")
     p.add_argument("--given-cameras", action="store_true", help="write the true cameras into the captures")
+    p.add_argument("--given-masks", action="store_true", help="write the true masks into the captures")
+    p.add_argument("--phone", action="store_true", help="the photos as a phone makes them (JPEG, tone curve, ...)")
     p.add_argument("--measure-only", action="store_true")
     p.add_argument("--docs", type=Path, help="write the markdown table to this file")
     args = p.parse_args(argv)
@@ -301,8 +329,10 @@ def main(argv=None) -> int:
     for (o, s), name in names.items():
         results.setdefault(o, {})[s] = measure(caps / name, res / name)
     text = table(results)
-    settings = (f"{args.views} views of {args.res} x {int(round(args.res * 3 / 4 / 2)) * 2} px (DNG, spp {args.spp}), "
-                f"preset {args.preset}, cameras {'given' if args.given_cameras else 'withheld (SfM)'}")
+    settings = (f"{args.views} views of {args.res} x {int(round(args.res * 3 / 4 / 2)) * 2} px "
+                f"({'phone JPEG' if args.phone else 'DNG'}, spp {args.spp}), preset {args.preset}, cameras "
+                f"{'given' if args.given_cameras else 'withheld (SfM)'}, masks {'given' if args.given_masks else 'computed'}, "
+                "no capture.yaml")
     (out / "tabletop_e2e.json").write_text(json.dumps({"command": " ".join(sys.argv), "settings": settings,
                                                        "workflow_seconds": seconds, "results": results},
                                                       indent=1, default=float))
