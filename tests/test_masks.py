@@ -188,9 +188,9 @@ def test_run_masks_names_the_photo_without_an_object(scene, tmp_path):
 
 
 def test_run_masks_with_cameras_of_a_void_capture(scene, tmp_path):
-    """With cameras, a capture without a support plane keeps this module's masks (recon.segment
-    falls back to them); the summary says which method made them."""
-    from recon.segment import SegmentSettings
+    """With cameras, a capture without a support plane keeps the flash-falloff masks
+    (recon.masks.views falls back to them); the summary says which method made them."""
+    from recon.masks.views import SegmentSettings
 
     cams = scene["linear"].parent / "gt" / "cameras.json"
     plain = rm.run_masks(scene["linear"], tmp_path / "plain")

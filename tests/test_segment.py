@@ -1,4 +1,4 @@
-"""Tabletop masks (recon.segment): the object apart from the table, against the true silhouettes."""
+"""Tabletop masks (recon.masks.tabletop, recon.masks.views): the object apart from the table, against the true silhouettes."""
 
 import json
 import logging
@@ -8,7 +8,9 @@ import pytest
 from _geometry_scene import icosphere, silhouette, synth_capture
 from _tabletop_scene import TABLETOP_TEST, tabletop_capture
 
-from recon import segment as sg
+from recon.masks import tabletop as sg
+from recon.masks.common import MaskError
+from recon.masks.views import run_tabletop_masks
 from recon.io.cameras import load_cameras
 from recon.io.images import read_exr, read_mask, write_exr, write_mask
 from recon.io.mesh import Mesh
@@ -33,7 +35,7 @@ def mug_masks(mug, tmp_path_factory):
     """The tabletop masks of the mug capture with its true cameras; the plane comes from points
     triangulated in the views (not from gt/plane.json)."""
     out = tmp_path_factory.mktemp("segment") / "masks"
-    summary = sg.run_tabletop_masks(mug / "images", mug / "gt" / "cameras.json", out)
+    summary = run_tabletop_masks(mug / "images", mug / "gt" / "cameras.json", out)
     return out, summary
 
 
@@ -199,13 +201,13 @@ def test_given_masks_win(mug, tmp_path):
     box[10:40, 20:70] = True
     write_mask(given / f"{cams.frames[2].stem}.png", box)
     write_mask(given / f"{cams.frames[3].stem}.png", np.ones((5, 5), bool))
-    with pytest.raises(sg.MaskError, match=r"0003\.png: mask is 5x5"):
-        sg.run_tabletop_masks(mug / "images", mug / "gt" / "cameras.json", tmp_path / "m", given_dir=given)
+    with pytest.raises(MaskError, match=r"0003\.png: mask is 5x5"):
+        run_tabletop_masks(mug / "images", mug / "gt" / "cameras.json", tmp_path / "m", given_dir=given)
     (given / f"{cams.frames[3].stem}.png").unlink()
     # every view given: nothing is derived, but the plane is still found (the later stages use it)
     for cam in cams:
         write_mask(given / f"{cam.stem}.png", box)
-    summary = sg.run_tabletop_masks(mug / "images", mug / "gt" / "cameras.json", tmp_path / "m", given_dir=given)
+    summary = run_tabletop_masks(mug / "images", mug / "gt" / "cameras.json", tmp_path / "m", given_dir=given)
     assert {v["source"] for v in summary["views"].values()} == {"given"} and summary["method"] == "given"
     assert summary["plane"]["found"] and (tmp_path / "m" / "plane.json").is_file()
     np.testing.assert_array_equal(read_mask(tmp_path / "m" / f"{cams.frames[2].stem}.png"), box)
@@ -218,8 +220,8 @@ def test_void_capture_keeps_the_flash_falloff_masks(tmp_path_factory, tmp_path, 
     cams_path = cap / "gt" / "cameras.json"
     given = tmp_path / "given"  # a mask beside the photos that is not the capture's own
     write_mask(given / "0000.png", np.ones((160, 192), bool))
-    with caplog.at_level(logging.INFO, logger="recon.segment"):
-        summary = sg.run_tabletop_masks(cap / "images", cams_path, tmp_path / "tab",
+    with caplog.at_level(logging.INFO, logger="recon.masks.views"):
+        summary = run_tabletop_masks(cap / "images", cams_path, tmp_path / "tab",
                                         settings=sg.SegmentSettings(min_views=3), given_dir=given, given_stems=[])
     assert summary["method"] == "flash_falloff" and not summary["plane"]["found"]
     assert {v["source"] for v in summary["views"].values()} == {"derived"}
@@ -236,8 +238,8 @@ def test_missing_image_names_the_file(mug, tmp_path):
     imgs = tmp_path / "images"
     for cam in cams.frames[:-1]:
         write_exr(imgs / f"{cam.stem}.exr", read_exr(mug / cam.image))
-    with pytest.raises(sg.MaskError, match=rf"{cams.frames[-1].stem}\.exr"):
-        sg.run_tabletop_masks(imgs, mug / "gt" / "cameras.json", tmp_path / "m")
+    with pytest.raises(MaskError, match=rf"{cams.frames[-1].stem}\.exr"):
+        run_tabletop_masks(imgs, mug / "gt" / "cameras.json", tmp_path / "m")
 
 
 def test_settings_are_checked():

@@ -172,6 +172,30 @@ def read_ply(path: str | os.PathLike) -> Mesh:
     return mesh
 
 
+def read_points(path: str | os.PathLike) -> np.ndarray:
+    """(N, 3) float64 vertex positions of a PLY point cloud (ASCII or binary; extra vertex
+    properties, e.g. the ``in_mask`` flag of ``poses/points.ply``, are ignored). An empty cloud
+    gives (0, 3); a file that is no PLY is a :class:`MeshError`."""
+    import open3d as o3d
+
+    path = Path(path)
+    if not path.is_file():
+        raise MeshError(f"{path}: file not found")
+    pts = np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        # open3d skips ASCII files with extra properties in some versions: read them by hand
+        text = path.read_text(errors="replace").splitlines()
+        if not text or text[0].strip() != "ply" or "end_header" not in text:
+            raise MeshError(f"{path}: not a PLY point cloud")
+        end = text.index("end_header")
+        rows = [line.split()[:3] for line in text[end + 1:] if line.strip()]
+        try:
+            pts = np.array(rows, dtype=np.float64).reshape(-1, 3)
+        except ValueError as e:
+            raise MeshError(f"{path}: not an ASCII PLY point cloud ({e})") from e
+    return pts
+
+
 def read_mesh(path: str | os.PathLike) -> Mesh:
     """Read ``.obj`` or ``.ply`` by extension."""
     suffix = Path(path).suffix.lower()

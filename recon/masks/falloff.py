@@ -1,11 +1,8 @@
-"""Stage ``masks``: one object mask per view (DESIGN section 2).
+"""Flash-falloff masks: the object in one flash-lit linear image, without cameras.
 
-Given masks (``<capture>/masks/<stem>.png``, nonzero = object) are used as they are. Otherwise
-a mask is derived from the linear image, relying on the capture's physics: the only light is
-the flash at the camera, so irradiance falls off with the squared distance and a background
-farther away than the object is much darker than the object (often pure noise).
-
-Method (why each step):
+The only light is the flash at the camera, so irradiance falls off with the squared distance
+and a background farther away than the object is much darker than the object (often pure
+noise). Method (why each step):
 
 1. Luminance (Rec.709 weights) of the linear image, floored at ``1e-4`` of its 99.9th
    percentile, in log10. The log turns "much darker" into "far apart" and makes the split
@@ -32,41 +29,23 @@ clipping): such a photo holds sensor noise, not a flash-lit object (a black obje
 that did not fire), and a mask derived from noise would only mislead the later stages. EXR
 views are scene-referred in unknown units, so only the first test applies to them.
 
-An object standing on a table lit by the same flash is one bright component with the table:
-this method cannot separate them. With known cameras (``run_masks(..., cameras=...)``) the
-masks come from :mod:`recon.segment` instead, which finds the support plane and keeps the
-method here for captures without one.
-
 Masks feed the visual hull (:mod:`recon.init_mesh`), where a mask that is too small carves
 away object, so every step errs on the side of a slightly larger mask.
 """
 
 from __future__ import annotations
 
-import json
-import logging
 import math
-import os
-import time
-from dataclasses import asdict, dataclass
-from pathlib import Path
+from dataclasses import dataclass
 
 import numpy as np
 
-from recon.io.atomic import atomic_dir
-from recon.io.images import ImageError, read_exr, read_mask, write_mask
+from recon.masks.common import LUMA, MaskError, disk
 
-log = logging.getLogger(__name__)
-
-LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 NO_LIGHT = 1e-20
 """Brightest pixels at or below this (any units) mean the image holds no light at all."""
 WHITE_LEVEL_KINDS = ("raw", "ldr")
 """linear.json kinds whose linear scale puts the white level at 1.0 (``min_signal`` applies)."""
-
-
-class MaskError(ValueError):
-    """A mask that cannot be made or used; the message names the file and the fix."""
 
 
 @dataclass(frozen=True)
@@ -117,13 +96,6 @@ def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
     best = np.flatnonzero(between >= between.max() * (1 - 1e-9))
     k = int(best[len(best) // 2])
     return float(edges[k + 1])
-
-
-def _disk(radius_px: int):
-    import cv2
-
-    d = 2 * radius_px + 1
-    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d, d))
 
 
 def derive_mask(rgb_linear: np.ndarray, settings: MaskSettings = MaskSettings(),
@@ -183,7 +155,7 @@ def derive_mask(rgb_linear: np.ndarray, settings: MaskSettings = MaskSettings(),
     r_close = int(round(settings.close_radius * short))
     m8 = mask.astype(np.uint8)
     if r_open > 0:
-        m8 = cv2.morphologyEx(m8, cv2.MORPH_OPEN, _disk(r_open))
+        m8 = cv2.morphologyEx(m8, cv2.MORPH_OPEN, disk(r_open))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(m8, connectivity=8)
     if n <= 1:
         raise MaskError("no foreground left after removing speckles: the object is too dark or too small")
@@ -200,135 +172,9 @@ def derive_mask(rgb_linear: np.ndarray, settings: MaskSettings = MaskSettings(),
         # pad so that the closing does not glue the object to the image border
         pad = r_close + 1
         m8 = np.pad(mask.astype(np.uint8), pad)
-        m8 = cv2.morphologyEx(m8, cv2.MORPH_CLOSE, _disk(r_close))[pad:-pad, pad:-pad]
+        m8 = cv2.morphologyEx(m8, cv2.MORPH_CLOSE, disk(r_close))[pad:-pad, pad:-pad]
         mask = m8.astype(bool)
     if settings.dilate_px > 0:
-        mask = cv2.dilate(mask.astype(np.uint8), _disk(settings.dilate_px)).astype(bool)
+        mask = cv2.dilate(mask.astype(np.uint8), disk(settings.dilate_px)).astype(bool)
     info = {"threshold_log10": float(t), "otsu_log10": float(t_otsu), "coverage": float(mask.mean())}
     return mask, info
-
-
-def fit_given_mask(mask: np.ndarray, path: str | os.PathLike, size: tuple[int, int]) -> np.ndarray:
-    """A capture's own mask (bool ``(H, W)``, the photo's size) at the working ``size = (w, h)``
-    of the linear images, which the linearize stage may have reduced (``linearize.max_size``):
-    area-averaged and kept where at least half of the output pixel is object. MaskError naming
-    ``path`` when the mask is neither that size nor the photo's shape at another scale."""
-    w, h = size
-    mh, mw = mask.shape
-    if (mw, mh) == (w, h):
-        return mask
-    s = max(w, h) / max(mw, mh)
-    if s < 1 and (max(1, round(mw * s)), max(1, round(mh * s))) == (w, h):  # as linearize reduced the photo
-        import cv2
-
-        return cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) >= 0.5
-    raise MaskError(
-        f"{path}: mask is {mw}x{mh} but the image is {w}x{h}; give masks the size of the photos"
-    )
-
-
-def list_linear_stems(linear_dir: str | os.PathLike) -> list[str]:
-    """Stems of the linear images ``<stem>.exr`` in ``linear_dir`` (sorted)."""
-    linear_dir = Path(linear_dir)
-    stems = sorted(p.stem for p in linear_dir.glob("*.exr") if not p.name.startswith("."))
-    if not stems:
-        raise MaskError(f"{linear_dir}: no linear images (<stem>.exr); run the linearize stage first")
-    return stems
-
-
-def _linear_record(linear_dir: Path) -> dict:
-    """The linearize stage's ``linear.json`` (empty when absent or unreadable: it is optional here)."""
-    path = linear_dir / "linear.json"
-    if not path.is_file():
-        return {}
-    try:
-        record = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        log.warning("%s: not readable (%s); treating the views as EXR (unknown white level)", path, e)
-        return {}
-    return record if isinstance(record, dict) else {}
-
-
-def run_masks(
-    linear_dir: str | os.PathLike,
-    out_dir: str | os.PathLike,
-    settings: MaskSettings = MaskSettings(),
-    given_dir: str | os.PathLike | None = None,
-    stems: list[str] | None = None,
-    cameras: str | os.PathLike | None = None,
-    points: str | os.PathLike | None = None,
-    segment_settings=None,
-) -> dict:
-    """Write ``out_dir/<stem>.png`` for every view and ``out_dir/masks.json`` (per-view info).
-
-    Parameters
-    ----------
-    linear_dir : folder with the linearize stage's ``<stem>.exr``.
-    out_dir : the stage folder ``results/<capture>/masks``; replaced atomically.
-    given_dir : the capture's ``masks/`` folder, if any: ``<stem>.png`` found there is used
-        unchanged (after a size check); views without one get a derived mask.
-    stems : the views; default all ``<stem>.exr`` in ``linear_dir``.
-    cameras : a ``cameras.json`` of pinhole views ``linear_dir/<stem>.exr`` (the capture's own,
-        or the poses stage's with its ``undistorted/`` folder as ``linear_dir``): the masks
-        separate an object standing on a table from the table (:func:`recon.segment.run_tabletop_masks`,
-        which keeps this module's masks, with a note, when no support plane is found) and
-        ``out_dir/plane.json`` records the plane. ``stems`` is then the cameras' views.
-    points : with ``cameras``: sparse points in their frame (``poses/points.ply``) to find the
-        plane in; without, points are triangulated from the views.
-    segment_settings : with ``cameras``: a :class:`recon.segment.SegmentSettings`.
-
-    Returns
-    -------
-    The summary written to ``masks.json``.
-    """
-    if cameras is not None:
-        from recon.segment import SegmentSettings, run_tabletop_masks
-
-        return run_tabletop_masks(linear_dir, cameras, out_dir, segment_settings or SegmentSettings(),
-                                  points=points, given_dir=given_dir, mask_settings=settings)
-    linear_dir = Path(linear_dir)
-    stems = list(stems) if stems is not None else list_linear_stems(linear_dir)
-    record = _linear_record(linear_dir)
-    white = 1.0 if record.get("kind") in WHITE_LEVEL_KINDS else None
-    given = Path(given_dir) if given_dir is not None else None
-    t0 = time.perf_counter()
-    views = {}
-    with atomic_dir(out_dir) as tmp:
-        for stem in stems:
-            exr = linear_dir / f"{stem}.exr"
-            try:
-                img = read_exr(exr)
-            except ImageError as e:
-                raise MaskError(f"{e}; rerun the linearize stage") from e
-            given_png = given / f"{stem}.png" if given is not None else None
-            if given_png is not None and given_png.is_file():
-                mask = fit_given_mask(read_mask(given_png), given_png, img.shape[1::-1])
-                if not mask.any():  # (recon.validate refuses it first; this covers a later edit)
-                    raise MaskError(f"{given_png}: the mask is empty (every pixel 0), so it shows no object; draw "
-                                    "the object (nonzero pixels) or delete the file to let this stage derive it")
-                info = {"source": "given", "coverage": float(mask.mean())}
-            else:
-                try:
-                    mask, info = derive_mask(img, settings, white_level=white)
-                except MaskError as e:
-                    source = (record.get("images") or {}).get(stem, {}).get("source")
-                    where = f"{source} ({exr})" if source else str(exr)
-                    raise MaskError(f"no object found in {where}: {e} (or provide masks/{stem}.png "
-                                    "in the capture)") from e
-                info["source"] = "derived"
-            if not settings.min_coverage <= info["coverage"] <= settings.max_coverage:
-                log.warning(
-                    "%s: mask covers %.2f%% of the image; check it (or give masks/%s.png)",
-                    stem, 100 * info["coverage"], stem,
-                )
-            write_mask(tmp / f"{stem}.png", mask)
-            views[stem] = info
-            log.info("%s: %s mask, %.1f%% of the image", stem, info["source"], 100 * info["coverage"])
-        summary = {
-            "method": "flash_falloff",
-            "views": views,
-            "settings": asdict(settings),
-            "seconds": time.perf_counter() - t0,
-        }
-        (tmp / "masks.json").write_text(json.dumps(summary, indent=1))
-    return summary

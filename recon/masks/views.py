@@ -1,0 +1,165 @@
+"""Masks with cameras: the support plane, then tabletop masks on it (:mod:`recon.masks.tabletop`),
+or flash-falloff masks (:mod:`recon.masks.falloff`) when nothing stands on a plane; given masks
+(:mod:`recon.masks.given`) win view by view.
+
+The poses stage calls :func:`run_tabletop_masks` on its undistorted views, cameras and sparse
+points; a capture with its own ``cameras.json`` gets the same through ``run_masks(..., cameras=)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import time
+from collections.abc import Collection
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from recon.io.atomic import atomic_dir
+from recon.io.cameras import Camera, CameraSet, load_cameras
+from recon.io.images import ImageError, read_exr, read_mask, write_mask
+from recon.io.mesh import read_points
+from recon.masks.common import MaskError
+from recon.masks.falloff import MaskSettings, derive_mask
+from recon.masks.given import fit_given_mask
+from recon.masks.points import triangulate_points
+from recon.masks.tabletop import SegmentError, SegmentSettings, segment_tabletop
+from recon.support import fit_support_plane, save_plane
+
+log = logging.getLogger(__name__)
+
+__all__ = ["SegmentError", "SegmentSettings", "run_tabletop_masks"]
+
+
+def _cameras_at_image_size(cams: CameraSet, images: list[np.ndarray], source) -> CameraSet:
+    """A capture's cameras.json at the photos' size for linear views that linearize reduced
+    (``linearize.max_size``): K scaled per axis (image edges stay at 0 and W); MaskError for any
+    other size mismatch."""
+    frames = []
+    for cam, img in zip(cams, images, strict=True):
+        h, w = img.shape[:2]
+        if (w, h) == (cam.width, cam.height):
+            frames.append(cam)
+            continue
+        s = max(w, h) / max(cam.width, cam.height)
+        if not (s < 1 and (max(1, round(cam.width * s)), max(1, round(cam.height * s))) == (w, h)):
+            raise MaskError(f"{source}: '{cam.image}' is {cam.width}x{cam.height} but its image is {w}x{h}")
+        K = cam.K.copy()
+        K[0] *= w / cam.width
+        K[1] *= h / cam.height
+        frames.append(Camera(cam.image, w, h, K, cam.world_to_camera.copy()))
+    return dataclasses.replace(cams, frames=tuple(frames))
+
+
+def run_tabletop_masks(
+    image_dir: str | os.PathLike,
+    cameras: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    settings: SegmentSettings | None = None,
+    points: str | os.PathLike | None = None,
+    given_dir: str | os.PathLike | None = None,
+    mask_settings: MaskSettings | None = None,
+    given_stems: Collection[str] | None = None,
+) -> dict:
+    """Write ``out_dir/<stem>.png`` (object masks), ``out_dir/masks.json`` and, when a support
+    plane is found, ``out_dir/plane.json`` (:mod:`recon.support`, in the frame of ``cameras``).
+
+    Parameters
+    ----------
+    image_dir : the pinhole linear views ``<stem>.exr`` the cameras describe: ``poses/undistorted``
+        after SfM, or the linearize stage's folder when the capture gives cameras.json.
+    cameras : that ``cameras.json``.
+    out_dir : replaced atomically.
+    points : a PLY of sparse points in the frame of ``cameras`` (``poses/points.ply``); without
+        it, points are triangulated from the views (:func:`triangulate_points`).
+    given_dir : the capture's ``masks/``: ``<stem>.png`` there wins over the derived mask.
+    given_stems : only these views' masks in ``given_dir`` count as given (e.g. after SfM,
+        ``poses/undistorted/masks`` holds every view's mask of the masks stage; the views whose
+        ``masks.json`` source is ``given`` are the capture's own).
+    mask_settings : the flash-falloff masks' settings, used when no plane is found.
+
+    Returns
+    -------
+    The summary written to ``masks.json``: per view ``source`` (given | tabletop | derived) and
+    ``coverage``; ``plane`` (found, reason, ...); ``method``; ``segment`` (diagnostics).
+    """
+    settings = SegmentSettings() if settings is None else settings
+    t0 = time.perf_counter()
+    mask_settings = MaskSettings() if mask_settings is None else mask_settings
+    image_dir = Path(image_dir)
+    cams = load_cameras(cameras)
+    images = []
+    for cam in cams:
+        path = image_dir / f"{cam.stem}.exr"
+        try:
+            images.append(read_exr(path))
+        except ImageError as e:
+            raise MaskError(f"{e}; rerun the stage that writes {image_dir}") from e
+    cams = _cameras_at_image_size(cams, images, cameras)
+    given = {}
+    if given_dir is not None:
+        for cam in cams:
+            p = Path(given_dir) / f"{cam.stem}.png"
+            if p.is_file() and (given_stems is None or cam.stem in given_stems):
+                given[cam.stem] = fit_given_mask(read_mask(p), p, (cam.width, cam.height))
+    # the plane is looked for even when every view has a given mask: the later stages use it
+    plane, plane_info = None, {"found": False}
+    if len(cams) < settings.min_views:
+        plane_info = {"found": False, "reason": f"{len(cams)} views (need >= {settings.min_views})"}
+    else:
+        if points is not None:
+            pts = read_points(points)
+            plane_info_source = f"sparse points {points}"
+        else:
+            pts = triangulate_points(images, cams, settings.triangulate_pairs)
+            plane_info_source = "points triangulated from the views with the known cameras"
+        plane, plane_info = fit_support_plane(pts, cams, settings.plane)
+        plane_info["source"] = plane_info_source
+    masks: dict[str, np.ndarray] = {}
+    views: dict[str, dict] = {}
+    seg_info = None
+    if plane is not None and len(given) == len(cams):
+        log.info("support plane found (%s): %s; every view has a given mask", plane_info["source"],
+                 plane_info["reason"])
+        method = "given"
+    elif plane is not None:
+        log.info("support plane found (%s): %s", plane_info["source"], plane_info["reason"])
+        derived, seg_info = segment_tabletop(images, cams, plane, settings)
+        for cam, m in zip(cams, derived, strict=True):
+            masks[cam.stem] = m
+            views[cam.stem] = {"source": "tabletop", **seg_info["views"][cam.stem]}
+        method = "tabletop"
+    else:
+        if len(given) < len(cams):
+            log.info("no support plane (%s): masks from the flash falloff, as for an object in the void "
+                     "(recon.masks)", plane_info.get("reason"))
+        for cam, img in zip(cams, images, strict=True):
+            if cam.stem in given:
+                continue
+            try:
+                m, inf = derive_mask(img, mask_settings)
+            except MaskError as e:
+                raise MaskError(f"no object found in {image_dir / cam.stem}.exr: {e} (or provide "
+                                f"masks/{cam.stem}.png in the capture)") from e
+            masks[cam.stem] = m
+            views[cam.stem] = {"source": "derived", **inf}
+        method = "flash_falloff"
+    for stem, m in given.items():
+        masks[stem] = m
+        views[stem] = {"source": "given", "coverage": float(m.mean())}
+    with atomic_dir(out_dir) as tmp:
+        for cam in cams:
+            write_mask(tmp / f"{cam.stem}.png", masks[cam.stem])
+        if plane is not None:
+            bbox = {} if seg_info is None else {
+                "object_bbox": {"lo": seg_info["hull"]["bbox_lo"], "hi": seg_info["hull"]["bbox_hi"]}}
+            save_plane(tmp / "plane.json", plane, source=plane_info["source"], **bbox)
+        summary = {"method": method, "views": {c.stem: views[c.stem] for c in cams}, "plane": plane_info,
+                   "segment": None if seg_info is None else {k: v for k, v in seg_info.items() if k != "views"},
+                   "settings": asdict(settings), "seconds": time.perf_counter() - t0}
+        (tmp / "masks.json").write_text(json.dumps(summary, indent=1, default=float))
+    return summary
