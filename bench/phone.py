@@ -83,7 +83,7 @@ def prepare(root: Path, case: str, args) -> dict:
         linearize_capture(cap, lin)
     t_synth = time.perf_counter() - t0
     info = json.loads((lin / "linear.json").read_text())
-    cams = load_cameras(cap / "cameras.json")
+    cams = load_cameras(cap / "gt" / "cameras.json")  # the true cameras and flash (the true mesh's problem)
     mesh = read_obj(cap / "gt" / "mesh.obj")
     views = Views([lin / info["images"][c.stem]["exr"] for c in cams.frames],
                   [cap / "masks" / f"{c.stem}.png" for c in cams.frames],

@@ -59,7 +59,7 @@ def main(argv=None) -> int:
                                         write_masks=True, write_cameras=True, write_gt_linear=False,
                                         specular=args.specular))
     t0 = time.perf_counter()
-    mesh, cams = read_obj(cap / "gt" / "mesh.obj"), load_cameras(cap / "cameras.json")
+    mesh, cams = read_obj(cap / "gt" / "mesh.obj"), load_cameras(cap / "gt" / "cameras.json")  # the true cameras and flash (the true mesh's problem)
     size = args.width
     views = Views([cap / c.image for c in cams.frames], [cap / "masks" / f"{c.stem}.png" for c in cams.frames],
                   None, cams, size)

@@ -143,7 +143,7 @@ def _known_mesh(cap, size, held_every=4, gspp=4, iterations=150):
     from recon.optimize.remesh import rasterize_atlas
     from recon.optimize.views import Views
 
-    cams = load_cameras(cap / "cameras.json")
+    cams = load_cameras(cap / "gt" / "cameras.json")  # the true cameras and flash (the true mesh's problem)
     lin = cap.parent / (cap.name + "-linear")
     info = linearize_capture(cap, lin)
     views = Views([lin / info["images"][c.stem]["exr"] for c in cams.frames],

@@ -120,7 +120,7 @@ SMALL = dict(object="blob", n_views=24, width=128, height=96, format="exr", spp=
 
 def _problem(cap, size=128):
     mesh = read_obj(cap / "gt" / "mesh.obj")
-    cams = load_cameras(cap / "cameras.json")
+    cams = load_cameras(cap / "gt" / "cameras.json")  # the true cameras and flash (the true mesh's problem)
     views = Views([cap / c.image for c in cams.frames], [cap / "masks" / f"{c.stem}.png" for c in cams.frames],
                   None, cams, size)
     held = [i for i in range(len(views)) if i % 4 == 2]
