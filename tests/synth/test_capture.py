@@ -159,7 +159,7 @@ def test_scene_scale_leaves_the_photos_unchanged(exr_capture, tmp_path):
         a = read_exr(exr_capture / "images" / f"{stem}.exr")
         b = read_exr(out / "images" / f"{stem}.exr")
         np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-6)
-    ca, cb = load_cameras(exr_capture / "cameras.json"), load_cameras(out / "cameras.json")
+    ca, cb = load_cameras(exr_capture / "gt" / "cameras.json"), load_cameras(out / "gt" / "cameras.json")
     assert cb.light_intensity == pytest.approx(ca.light_intensity * s**2)
     np.testing.assert_allclose(read_obj(out / "gt" / "mesh.obj").v_pos,
                                read_obj(exr_capture / "gt" / "mesh.obj").v_pos * s, rtol=1e-6, atol=1e-12)
