@@ -1,15 +1,28 @@
-"""The visual hull as a distance field: the part of space every silhouette cone holds.
+"""The visual hull as a distance field: the part of space the silhouette cones hold.
 
 Used by the init_mesh stage (the initial mesh is the field's zero level set) and by the poses
 stage (a coarse hull gives the object's extent for the object frame).
 
-:func:`silhouette_field` evaluates, on a :class:`Grid` of voxel centers, for every view the
+:func:`silhouette_fields` evaluates, on a :class:`Grid` of voxel centers, for every view the
 signed 2-D distance of a voxel's projection to the mask's outline (positive inside, from
 ``cv2.distanceTransform``, looked up bilinearly), converted to world units at the voxel's depth
-(``d_px * z / f``: the distance to the silhouette cone at that depth). The field is the minimum
-over the views that see the voxel (the intersection of the cones). Unlike binary carving of voxel
-centers, its zero level set lies between voxels, so a surface extracted from it is placed to
-sub-voxel precision.
+(``d_px * z / f``: the distance to the silhouette cone at that depth). A view sees a voxel when
+the voxel projects into its frame, in front of it; the others abstain.
+
+- The strict hull: the minimum over the views that see the voxel (the intersection of the
+  cones). One view's wrong mask carves its error through the whole object: a hole in a mask is
+  a tunnel, a part cut off one mask is missing.
+- The hull by vote (``outside_fraction`` f > 0): a voxel is outside only when more than the
+  fraction f of the views that see it say so (:func:`votes_needed`: k = 1 + floor(f * seen));
+  the field is the k-th smallest of the views' distances, whose zero level set is where the
+  k-th view's cone boundary passes.
+
+Unlike binary carving of voxel centers, the zero level sets lie between voxels, so a surface
+extracted from them is placed to sub-voxel precision.
+
+Public API (stable; the masks stage's segmentation uses it too): :class:`Grid`,
+:class:`HullFields`, :func:`silhouette_fields`, :func:`silhouette_field`,
+:func:`votes_needed`, :func:`bilinear`, :class:`HullError`.
 """
 
 from __future__ import annotations

@@ -110,3 +110,14 @@ def test_views_that_do_not_see_a_voxel_abstain():
         field, seen = hull.silhouette_field(cams, masks, grid, outside_fraction=fraction)
         assert np.all(field.ravel()[inside] > 0)
         assert seen.max() == 13 and seen.ravel()[inside].min() == 12  # not all seen by the close-up
+
+
+def test_few_views_give_the_strict_hull():
+    """Below 10 views no minority can be outvoted (10 %): the voted field is the strict one."""
+    sphere = _sphere(0.5)
+    cams = _ring(n=9, res=64)
+    masks = {c.stem: silhouette(sphere, c) for c in cams}
+    masks["03"] = np.zeros_like(masks["03"])  # even a wrong view carves
+    h = hull.silhouette_fields(cams, masks, hull.Grid.cube(np.zeros(3), 0.6, 16), outside_fraction=0.1)
+    np.testing.assert_array_equal(h.voted, h.strict)
+    assert not (h.voted > 0).any()

@@ -20,6 +20,8 @@ bundle are files inside report/, which is written atomically as a whole. It show
      "optimize": {"records": n, "iterations": n, "final_loss": float, "wall_seconds": float,
                   "phases_source": "summary.json" | "log.jsonl" | null,
                   "stages": [...the summary's per coarse-to-fine stage entries, when present]},
+     "initial_mesh": {"source", "faces", "genus", "mask_iou_mean", "mask_iou_min", "mask_iou_worst",
+                      "repairs"} (from init_mesh/init_mesh.json beside optimize/, when present),
      "light_intensity": float, "settings": {...}}
 
 NaN and Inf never reach the file (they become null).
@@ -40,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.brdf import R_MIN
+from recon.init_mesh import report_summary
 from recon.io.atomic import atomic_dir
 from recon.io.cameras import CameraSet, load_cameras
 from recon.io.images import linear_to_srgb, write_png
@@ -291,6 +294,15 @@ def make_report(
                 "albedo.")
         else:
             page.notes.append(f"Albedo is absolute: the flash's intensity I_e = {light:.4g} was given.")
+    initial = report_summary(optimize_dir.parent / "init_mesh" / "init_mesh.json")
+    if initial is not None:  # the initial mesh's genus and how well it matched the masks
+        metrics["initial_mesh"] = initial
+        if initial["mask_iou_mean"] is not None:
+            worst = ", ".join(f"{k} {v:.2f}" for k, v in initial["mask_iou_worst"])
+            page.notes.append(
+                f"Initial mesh (visual hull by vote): genus {initial['genus']}, silhouette IoU with the masks mean "
+                f"{initial['mask_iou_mean']:.3f}, lowest {worst} (a view far below the others has a wrong mask)."
+                + (f" Repaired: {'; '.join(initial['repairs'])}." if initial["repairs"] else ""))
     if metrics["asset"].get("scale_warning"):
         page.notes.append(f"Asset scale: {metrics['asset']['scale_source']}.")
         log.warning("the asset's scale is unknown: %s", metrics["asset"]["scale_source"])
