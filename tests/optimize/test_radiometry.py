@@ -197,3 +197,20 @@ def test_a_capture_built_to_collapse_stops(capture, tmp_path):
     vs = views.at(64)
     assert mask_coverage(mesh, vs.cameras, vs.masks)["covered_mean"] > 0.7
     assert np.isfinite(read_exr(tmp_path / "ok" / "diffuse.exr")).all()
+
+    # export: the asset covers the masks and is written; the same maps on the surface shrunk to a
+    # twentieth are refused, naming the masks, and leave no export folder behind
+    from recon.export import ExportError, ExportSettings, export_asset
+    from recon.io.mesh import write_obj
+
+    maps = [tmp_path / "ok" / f"{k}.exr" for k in ("diffuse", "specular", "roughness")]
+    files = export_asset(tmp_path / "ok" / "mesh.obj", *maps, tmp_path / "export", ExportSettings(),
+                         cameras_json=root / "cameras.json", masks_dir=root / "masks")
+    assert files["glb"].is_file()
+    c = mesh.v_pos.mean(axis=0)
+    write_obj(tmp_path / "shrunk.obj", Mesh(c + 0.05 * (mesh.v_pos - c), mesh.t_pos_idx, mesh.v_tex, mesh.t_tex_idx))
+    with pytest.raises(ExportError, match=r"shrunk.obj: the optimized surface covers only \d+ % of the masks in "
+                                          r"\S*masks \(need 50 %\)"):
+        export_asset(tmp_path / "shrunk.obj", *maps, tmp_path / "export2", ExportSettings(),
+                     cameras_json=root / "cameras.json", masks_dir=root / "masks")
+    assert not (tmp_path / "export2").exists()
