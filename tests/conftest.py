@@ -33,3 +33,76 @@ def mi():
     from recon.mi import load_variant
 
     return load_variant("llvm_ad_rgb")
+
+
+@pytest.fixture
+def drjit_single_thread():
+    """drjit on one thread for the test, the thread count restored after.
+
+    With several threads drjit's scatter-adds (the film's pixel sums, the backward pass's
+    gradients) run in an order the scheduler picks, so the same render can differ in the last
+    bits between two calls (tests/_float_sums.py). Tests whose property is bit equality of two
+    computations ("zero offset is the collocated kernel bit for bit", "the same settings give the
+    same files", "a resumed run ends where an uninterrupted one does") take this fixture; tests
+    that compare within a tolerance derive it from the sums instead."""
+    import drjit as dr
+
+    from recon.mi import load_variant
+
+    load_variant()
+    old = dr.thread_count()
+    dr.set_thread_count(1)
+    yield
+    dr.set_thread_count(old)
+
+
+# ---- --cpu-durations=N: the tests that cost the most CPU seconds ----
+# pytest's --durations reports wall time, which on a shared or busy machine says more about the
+# neighbours than about the test. This reports the CPU seconds (user + system) each test phase
+# took in this process, its drjit/torch threads and the subprocesses it waited for (Snakemake
+# runs), so the suite's cost can be measured, and cut, under any load.
+def pytest_addoption(parser):
+    parser.addoption("--cpu-durations", type=int, default=None, metavar="N",
+                     help="show the N test phases that took the most CPU seconds (0: all)")
+
+
+def _cpu_seconds() -> float:
+    import resource
+
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+_CPU_PHASES: list[tuple[float, str, str]] = []
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_setup(item):
+    t0 = _cpu_seconds()
+    yield
+    _CPU_PHASES.append((_cpu_seconds() - t0, "setup", item.nodeid))
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item):
+    t0 = _cpu_seconds()
+    yield
+    _CPU_PHASES.append((_cpu_seconds() - t0, "call", item.nodeid))
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_teardown(item):
+    t0 = _cpu_seconds()
+    yield
+    _CPU_PHASES.append((_cpu_seconds() - t0, "teardown", item.nodeid))
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    n = config.getoption("--cpu-durations")
+    if n is None:
+        return
+    rows = sorted(_CPU_PHASES, reverse=True)
+    total = sum(r[0] for r in rows)
+    terminalreporter.write_sep("=", f"slowest {n or 'all'} test phases by CPU seconds (all phases: {total:.1f} s)")
+    for cpu, phase, nodeid in rows[:n] if n else rows:
+        terminalreporter.write_line(f"{cpu:8.2f}s {phase:<8} {nodeid}")

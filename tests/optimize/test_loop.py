@@ -38,17 +38,6 @@ def _inputs(root):
             root / "cameras.json", root / "init.obj")
 
 
-def _single_thread():
-    import drjit as dr
-
-    from recon.mi import load_variant
-
-    load_variant()
-    old = dr.thread_count()
-    dr.set_thread_count(1)  # float atomics in the renderer's backward pass are ordered with one thread
-    return old
-
-
 KILLER = """
 import os, signal, sys, json, logging
 logging.basicConfig(level=logging.INFO)
@@ -79,24 +68,21 @@ def _killed_run(root, out, kill_after, settings=TINY):
     return p.stderr
 
 
-def test_outputs_resume_after_kill_and_match(capture, tmp_path):
+def test_outputs_resume_after_kill_and_match(capture, tmp_path, drjit_single_thread):
+    """Killed twice and resumed: the outputs equal an uninterrupted run's bit for bit. drjit on
+    one thread here and in the killed runs (KILLER): float atomics in the renderer's backward
+    pass are ordered with one thread."""
     root, _ = capture
     images, masks, sats, cams, init = _inputs(root)
-    old = _single_thread()
-    try:
-        ref = optimize_capture(images, masks, sats, cams, init, tmp_path / "ref", TINY, progress=False)
-        # killed in stage 0 (iteration 2 lost: last checkpoint after iteration 1) ...
-        err1 = _killed_run(root, tmp_path / "run", 3)
-        assert "resuming" not in err1
-        # ... resumed, killed again in stage 1 ...
-        err2 = _killed_run(root, tmp_path / "run", 3)
-        assert "resuming from checkpoint: stage 0, iteration 2" in err2
-        # ... and finished here.
-        got = optimize_capture(images, masks, sats, cams, init, tmp_path / "run", TINY, progress=False)
-    finally:
-        import drjit as dr
-
-        dr.set_thread_count(old)
+    ref = optimize_capture(images, masks, sats, cams, init, tmp_path / "ref", TINY, progress=False)
+    # killed in stage 0 (iteration 2 lost: last checkpoint after iteration 1) ...
+    err1 = _killed_run(root, tmp_path / "run", 3)
+    assert "resuming" not in err1
+    # ... resumed, killed again in stage 1 ...
+    err2 = _killed_run(root, tmp_path / "run", 3)
+    assert "resuming from checkpoint: stage 0, iteration 2" in err2
+    # ... and finished here.
+    got = optimize_capture(images, masks, sats, cams, init, tmp_path / "run", TINY, progress=False)
     a, b = tmp_path / "ref", tmp_path / "run"
     for name in ("mesh.obj", "diffuse.exr", "specular.exr", "roughness.exr", "log.jsonl", "summary.json"):
         assert (a / name).is_file() and (b / name).is_file()
@@ -227,20 +213,15 @@ def test_options_and_ablations_run(capture, tmp_path, change):
     assert np.all((d >= 0) & (d <= 1))
 
 
-def test_guard_under_large_steps_is_deterministic_and_clean(capture, tmp_path):
+def test_guard_under_large_steps_is_deterministic_and_clean(capture, tmp_path, drjit_single_thread):
     """Huge geometry steps: the guard backs off often (also in the pipelined check/redo path),
-    the result has no self-intersections, and two runs agree exactly."""
+    the result has no self-intersections, and two runs agree exactly (drjit on one thread: the
+    renderer's float atomics in a fixed order)."""
     root, _ = capture
     images, masks, sats, cams, init = _inputs(root)
     s = OptimizeSettings(**{**TINY.__dict__, "optimizer": "adam", "lr_geometry": 0.1, "checkpoint_every": 3,
                             "stages": (StageSettings(0.12, 32, 6),)})
-    old = _single_thread()
-    try:
-        runs = [optimize_capture(images, masks, sats, cams, init, tmp_path / str(k), s, progress=False) for k in (0, 1)]
-    finally:
-        import drjit as dr
-
-        dr.set_thread_count(old)
+    runs = [optimize_capture(images, masks, sats, cams, init, tmp_path / str(k), s, progress=False) for k in (0, 1)]
     log = [json.loads(x) for x in (tmp_path / "0" / "log.jsonl").read_text().splitlines()]
     assert sum(r["guard_halvings"] > 0 for r in log) >= 3
     assert runs[0]["mesh"]["self_intersecting_faces"] == 0 and runs[0]["mesh"]["manifold"]
@@ -311,10 +292,10 @@ def test_support_plane_is_never_crossed(capture, tmp_path):
     assert all(r["plane_projected"] == 0 for r in free_log)
 
 
-def test_imaging_loop_resumes_after_kill_and_matches(capture, tmp_path):
+def test_imaging_loop_resumes_after_kill_and_matches(capture, tmp_path, drjit_single_thread):
     """imaging_loop: select, killed in stage 1 (after the selection on stage 0's model): the
     resumed run restores the chosen terms and their refined values and ends where the
-    uninterrupted run does."""
+    uninterrupted run does (bit for bit: drjit on one thread)."""
     import dataclasses
 
     root, _ = capture
@@ -322,16 +303,10 @@ def test_imaging_loop_resumes_after_kill_and_matches(capture, tmp_path):
     # the flash offset given (capture.yaml), so stage 1 renders with it whatever the selection keeps
     s = dataclasses.replace(TINY, imaging_loop="select", imaging_terms=("exposure", "falloff"), holdout_every=4,
                             select_iterations=8, select_image_size=32, select_spp=1, flash_offset=(0.02, 0.0, 0.0))
-    old = _single_thread()
-    try:
-        ref = optimize_capture(images, masks, sats, cams, init, tmp_path / "ref", s, progress=False)
-        err = _killed_run(root, tmp_path / "run", 7, s)  # stage 1, iteration 2 (last checkpoint: iteration 1)
-        assert "imaging terms for the loop" in err
-        got = optimize_capture(images, masks, sats, cams, init, tmp_path / "run", s, progress=False)
-    finally:
-        import drjit as dr
-
-        dr.set_thread_count(old)
+    ref = optimize_capture(images, masks, sats, cams, init, tmp_path / "ref", s, progress=False)
+    err = _killed_run(root, tmp_path / "run", 7, s)  # stage 1, iteration 2 (last checkpoint: iteration 1)
+    assert "imaging terms for the loop" in err
+    got = optimize_capture(images, masks, sats, cams, init, tmp_path / "run", s, progress=False)
     assert ref["imaging_loop"]["evidence"]["after_stage"] == 0
     np.testing.assert_allclose(ref["imaging_loop"]["values_after_loop"]["flash_offset"], [0.02, 0.0, 0.0], rtol=1e-6)
     assert got["imaging_loop"]["chosen"] == ref["imaging_loop"]["chosen"]

@@ -100,56 +100,47 @@ def test_given_cameras_are_not_refined(capture, tmp_path):
         assert a.light_intensity == b.light_intensity
 
 
-def test_sfm_cameras_refined_written_and_resumed(capture, tmp_path):
+def test_sfm_cameras_refined_written_and_resumed(capture, tmp_path, drjit_single_thread):
     """Cameras 1 degree off, labelled SfM, refine "on": the renderer pulls them towards the
     truth (rotation error after the Umeyama fit down), optimize/cameras.json holds them, and a
-    run interrupted after a checkpoint resumes to the same cameras and mesh."""
-    import drjit as dr
+    run interrupted after a checkpoint resumes to the same cameras and mesh (drjit on one thread:
+    the backward pass's float atomics in a fixed order, so resumed == uninterrupted)."""
+    images, masks = _inputs(capture)
+    cams_json, true = _sfm_cameras(capture, tmp_path / "poses")
+    s = _settings(refine_cameras="on", checkpoint_every=10, stages=(StageSettings(0.12, 32, 30),),
+                  camera_lr_rotation_deg=0.05)
+    ref = optimize_capture(images, masks, None, cams_json, capture / "init.obj", tmp_path / "ref", s,
+                           progress=False)
+    info = ref["camera_refinement"]
+    assert info["mode"] == "on" and info["refined"] and len(info["corrections"]["views"]) == 8
+    assert "loss_camera" in ref["final_losses"]
+    out = load_cameras(tmp_path / "ref" / "cameras.json")
+    assert out.extra["optimize_cameras"]["refined"] is True
+    before = pose_errors(load_cameras(cams_json), true)["mean_rotation_deg"]
+    after = pose_errors(out, true)["mean_rotation_deg"]
+    assert after < 0.9 * before, (before, after)
+    for c in out.frames:
+        assert np.all(np.isfinite(c.K)) and np.all(np.isfinite(c.world_to_camera))
 
-    from recon.mi import load_variant
+    class Stop(Exception):
+        pass
 
-    load_variant()
-    old = dr.thread_count()
-    dr.set_thread_count(1)  # float atomics of the backward pass ordered: resumed == uninterrupted
-    try:
-        images, masks = _inputs(capture)
-        cams_json, true = _sfm_cameras(capture, tmp_path / "poses")
-        s = _settings(refine_cameras="on", checkpoint_every=10, stages=(StageSettings(0.12, 32, 30),),
-                      camera_lr_rotation_deg=0.05)
-        ref = optimize_capture(images, masks, None, cams_json, capture / "init.obj", tmp_path / "ref", s,
-                               progress=False)
-        info = ref["camera_refinement"]
-        assert info["mode"] == "on" and info["refined"] and len(info["corrections"]["views"]) == 8
-        assert "loss_camera" in ref["final_losses"]
-        out = load_cameras(tmp_path / "ref" / "cameras.json")
-        assert out.extra["optimize_cameras"]["refined"] is True
-        before = pose_errors(load_cameras(cams_json), true)["mean_rotation_deg"]
-        after = pose_errors(out, true)["mean_rotation_deg"]
-        assert after < 0.9 * before, (before, after)
-        for c in out.frames:
-            assert np.all(np.isfinite(c.K)) and np.all(np.isfinite(c.world_to_camera))
+    def stop_at(rec):
+        if rec["iteration"] == 14:
+            raise Stop
 
-        class Stop(Exception):
-            pass
-
-        def stop_at(rec):
-            if rec["iteration"] == 14:
-                raise Stop
-
-        with pytest.raises(Stop):
-            optimize_capture(images, masks, None, cams_json, capture / "init.obj", tmp_path / "run", s,
-                             progress=False, callback=stop_at)
-        got = optimize_capture(images, masks, None, cams_json, capture / "init.obj", tmp_path / "run", s,
-                               progress=False)
-        assert got["iterations"] == ref["iterations"]
-        a, b = load_cameras(tmp_path / "run" / "cameras.json"), out
-        for x, y in zip(a.frames, b.frames, strict=True):
-            np.testing.assert_allclose(x.world_to_camera, y.world_to_camera, atol=1e-6)
-            np.testing.assert_allclose(x.K, y.K, rtol=1e-6)
-        np.testing.assert_allclose(read_obj(tmp_path / "run" / "mesh.obj").v_pos,
-                                   read_obj(tmp_path / "ref" / "mesh.obj").v_pos, atol=1e-5)
-    finally:
-        dr.set_thread_count(old)
+    with pytest.raises(Stop):
+        optimize_capture(images, masks, None, cams_json, capture / "init.obj", tmp_path / "run", s,
+                         progress=False, callback=stop_at)
+    got = optimize_capture(images, masks, None, cams_json, capture / "init.obj", tmp_path / "run", s,
+                           progress=False)
+    assert got["iterations"] == ref["iterations"]
+    a, b = load_cameras(tmp_path / "run" / "cameras.json"), out
+    for x, y in zip(a.frames, b.frames, strict=True):
+        np.testing.assert_allclose(x.world_to_camera, y.world_to_camera, atol=1e-6)
+        np.testing.assert_allclose(x.K, y.K, rtol=1e-6)
+    np.testing.assert_allclose(read_obj(tmp_path / "run" / "mesh.obj").v_pos,
+                               read_obj(tmp_path / "ref" / "mesh.obj").v_pos, atol=1e-5)
 
 
 def test_select_decides_on_held_out_views_and_the_report_shows_it(capture, tmp_path):

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from _float_sums import SRGB_RELATIVE_SLOPE, U32, reorder_bound
 from render_scenes import uv_sphere
 
 from recon.io.cameras import Camera, intrinsics, look_at
@@ -169,7 +170,11 @@ def test_relight_rmse_self_is_noise_and_decreases_with_spp(sphere):
     env = em.envmap_image(64, 32)
     cams = _cams()
     same = em.relight_rmse(sphere, GLOSSY, sphere, GLOSSY, cams, env, spp=8)
-    assert same["per_view"] == [0.0, 0.0]  # common random numbers: identical scenes, identical images
+    # common random numbers: identical scenes, the same samples; only the order in which drjit's
+    # threads add each pixel's 8 samples (all >= 0) may differ: within 2 (spp - 1) u of the value,
+    # at most 0.44 times that in sRGB, plus the float32 encoding's rounding (tests/_float_sums.py):
+    # 4.9e-7, where another seed's noise is ~0.03
+    assert max(same["per_view"]) <= SRGB_RELATIVE_SLOPE * reorder_bound(8) + 2 * U32, same
     lo = em.relight_rmse(sphere, GLOSSY, sphere, GLOSSY, cams, env, spp=8, seed_gt=1000)
     hi = em.relight_rmse(sphere, GLOSSY, sphere, GLOSSY, cams, env, spp=64, seed_gt=1000)
     # independent seeds: pure Monte Carlo noise, ~ 1/sqrt(spp) (expected ratio 0.35); measured

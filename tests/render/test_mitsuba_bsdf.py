@@ -296,6 +296,8 @@ def test_texture_rows_follow_obj_convention(mi, mb):
     rgba = mb.render_reference(quad, {"diffuse": tex, "specular": 0.0, "roughness": 1.0}, cam,
                                light_intensity=4.0, spp=16, seed=0, alpha=True)
     assert rgba.shape == (H, W, 4)
+    # two renders: each pixel sums 16 samples (all >= 0) in an order drjit's threads pick, so the
+    # two agree within 2 (16 - 1) u = 1.8e-6 relative (tests/_float_sums.py)
     np.testing.assert_allclose(rgba[:, :, :3], img, rtol=1e-5, atol=1e-7)
     # coverage: the quad spans +-0.5 around the axis, the view +-2 tan(20 deg) = +-0.73
     edge = 0.5 * (1 - 0.5 / (2 * np.tan(np.radians(20)))) * W  # first covered column

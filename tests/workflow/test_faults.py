@@ -199,10 +199,8 @@ def test_uninterrupted_run_gives_the_same_result_and_a_second_run_is_refused(int
     shutil.rmtree(results / "demo/optimize/checkpoints")
     first = Run(repo_root, caps, results, "--forcerun", "optimize", log=root / "uninterrupted.txt")
     assert first.kill_when(results, "demo/optimize/checkpoints/last.pt", sig=None)
-    t0 = time.monotonic()
     second = Run(repo_root, caps, results, log=root / "second.txt")
-    rc2, text2 = second.wait(timeout=300)
-    seconds2 = time.monotonic() - t0
+    rc2, text2 = second.wait(timeout=300)  # a hang guard, not a speed check
     rc, text = first.wait()
     assert rc == 0, text[-5000:]
     assert _jobs(text) == ["optimize", "export", "report"]
@@ -211,8 +209,9 @@ def test_uninterrupted_run_gives_the_same_result_and_a_second_run_is_refused(int
     assert rc2 == 1, text2[-3000:]
     assert f"another run is working on the results folder '{results.resolve()}'" in text2
     assert f"pid {first.proc.pid}" in text2
+    # refused at once, not after waiting for the lock: a waiting run would have run its jobs or
+    # ended 0 (no wall-time bound here: a busy machine can take minutes to start Snakemake)
     assert "Traceback" not in text2 and _jobs(text2) == []
-    assert seconds2 < 120
     again = _snapshot(results)
     # the same result as the run killed in optimize, export and report, within run-to-run noise:
     # multi-threaded float atomics in the renderer's backward pass make two runs differ in the
