@@ -132,16 +132,45 @@ def _touch_all(repo_root, caps, res, preset="draft"):
     assert _snakemake(repo_root, caps, res, "all", preset=preset) == set()
 
 
-@pytest.fixture
-def finished(repo_root, tmp_path):
-    """A capture without cameras (the whole chain, COLMAP included) marked done with draft."""
-    caps = tmp_path / "captures"
+@pytest.fixture(scope="module")
+def _finished_dag(repo_root, tmp_path_factory):
+    """A capture without cameras (the whole chain, COLMAP included) marked done with draft:
+    made once per module (three Snakemake runs); the tests below only ask dry runs."""
+    root = tmp_path_factory.mktemp("finished")
+    caps = root / "captures"
     _write_photos(caps / "obj" / "images")
     for p in (caps / "obj" / "images").iterdir():
         _age(p)
-    res = tmp_path / "results"
+    res = root / "results"
     _touch_all(repo_root, caps, res)
     return caps, res
+
+
+def _files(folder: Path) -> dict:
+    """Relative path -> (bytes, (atime_ns, mtime_ns)) of every file under ``folder``."""
+    return {p.relative_to(folder): (p.read_bytes(), (p.stat().st_atime_ns, p.stat().st_mtime_ns))
+            for p in folder.rglob("*") if p.is_file()}
+
+
+@pytest.fixture
+def finished(_finished_dag):
+    """The module's finished DAG, its captures folder put back after each test as it was (files,
+    contents and dates): the tests edit capture files and ask dry runs, which change nothing in
+    the results or Snakemake's records."""
+    caps, res = _finished_dag
+    before, dirs = _files(caps), {p for p in caps.rglob("*") if p.is_dir()}
+    yield caps, res
+    assert caps.is_dir(), f"a test left {caps} moved away"
+    for rel in set(_files(caps)) - set(before):
+        (caps / rel).unlink()
+    for d in sorted({p for p in caps.rglob("*") if p.is_dir()} - dirs, reverse=True):  # deepest first
+        d.rmdir()
+    now = _files(caps)
+    for rel, (data, times) in before.items():
+        if now.get(rel) != (data, times):
+            (caps / rel).parent.mkdir(parents=True, exist_ok=True)
+            (caps / rel).write_bytes(data)
+            os.utime(caps / rel, ns=times)
 
 
 def test_preset_switch_reruns_only_stages_whose_settings_differ(repo_root, finished):
@@ -175,7 +204,10 @@ def test_moved_captures_folder_reruns_nothing(repo_root, finished, tmp_path):
     moved = tmp_path / "moved" / "all_my_captures"
     moved.parent.mkdir()
     caps.rename(moved)
-    assert _snakemake(repo_root, moved, res, "all") == set()
+    try:
+        assert _snakemake(repo_root, moved, res, "all") == set()
+    finally:
+        moved.rename(caps)  # back for the module's other tests
 
 
 def test_section_edit_reruns_that_stage_and_what_follows(repo_root, finished):
