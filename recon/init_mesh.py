@@ -12,10 +12,10 @@ masks, built without CUDA, made to tolerate wrong masks (docs/init_mesh.md):
       not project into abstain; voxels seen by fewer than ``min_views`` views are outside). One
       view's mask error, a dark concavity the mask missed or a part it cut off, is outvoted:
       no hole, tunnel or missing part. The topology is what the views support;
-   b. a grey-scale closing by a ball of ``closing_voxels``: thin tunnels close;
-   c. the strict hull (every view carves) where the voted one lies within ``strict_band_voxels``
-      outside it, the voted one elsewhere (the vote's surface is a little larger than the
-      strict one), kept only when that leaves the voted hull's topology.
+   b. the strict hull (every view carves) where the voted one lies within ``strict_band``
+      outside it, the voted one less the band elsewhere: the vote's inflation and its thin fins
+      along the views' rims go, the wrong views' carvings stay filled;
+   c. a grey-scale closing by a ball of ``closing_radius``: thin and shallow tunnels close.
    The zero level set lies between voxels, so the surface is placed to sub-voxel precision.
 2. Zero level set by flying-edges marching cubes (``open3d.t.geometry.TriangleMesh.
    create_isosurfaces``); positive inside gives outward normals (checked: positive volume).
@@ -85,35 +85,39 @@ class InitMeshSettings:
     # the views that see it (it projects into their frame) put it outside their mask, so one
     # view's mask error cannot carve a hole, a tunnel or a missing part once 10 views see the
     # place (two views' errors from 20, ...); below 10 views the hull is strict. 0: the strict
-    # hull. Measured in docs/init_mesh.md (0.2 left spurious handles on a torus's rim)
+    # hull. Measured in docs/init_mesh.md
     outside_fraction: float = 0.1
-    # grey-scale closing of the voted field by a ball of this radius in voxels: tunnels thinner
-    # than about twice it that enough views carved (but not all) close
-    closing_voxels: int = 2
-    # the surface follows the strict hull (every view carves) where the voted one lies less than
-    # this many voxels outside it, and the voted one elsewhere: the vote's hull is larger than the
-    # strict one by a band that grows with the votes needed (on 33 views accuracy 0.0110 voted
-    # against 0.0045 strict, 0.0046 with this); kept only when it leaves the voted hull's topology
-    # (else the voted field is used); 0: the voted field alone
-    strict_band_voxels: float = 1.0
+    # the surface is the strict hull's (every view carves) where the voted one lies less than this
+    # far outside it, the voted one's where a few views carved deeper: max(strict, voted - band).
+    # The vote's surface is larger than the strict one (on 33 views accuracy 0.0117 against 0.0051)
+    # and has thin fins along the views' rims that bridge tunnels (genus 9 for a torus); the band
+    # removes both. A fraction of the grid's side (0.016: 2 voxels at resolution 128); 0: the
+    # voted surface
+    strict_band: float = 0.016
+    # then a grey-scale closing by a ball of this radius (fraction of the grid's side; 0.024: 3
+    # voxels at 128): the shallow tunnels a wrong view's cone leaves where it grazes the surface
+    # inside the band, and any tunnel thinner than about twice this, close. 0: none
+    closing_radius: float = 0.024
 
     def __post_init__(self):
         if self.resolution < 8:
             raise ValueError(f"resolution must be >= 8, got {self.resolution}")
         if self.bound < 0 or self.target_faces < 100 or self.min_views < 1:
             raise ValueError("bound must be >= 0, target_faces >= 100 and min_views >= 1")
-        if self.plane_closing_voxels < 0 or self.closing_voxels < 0:
-            raise ValueError(f"plane_closing_voxels and closing_voxels must be >= 0, got "
-                             f"{self.plane_closing_voxels} and {self.closing_voxels}")
+        if self.plane_closing_voxels < 0:
+            raise ValueError(f"plane_closing_voxels must be >= 0, got {self.plane_closing_voxels}")
         if not 0.0 <= self.outside_fraction < 0.5:
             raise ValueError(f"outside_fraction must be in [0, 0.5) (a minority of the views), got {self.outside_fraction}")
-        if self.strict_band_voxels < 0:
-            raise ValueError(f"strict_band_voxels must be >= 0, got {self.strict_band_voxels}")
+        if not (0.0 <= self.strict_band < 0.25 and 0.0 <= self.closing_radius < 0.25):
+            raise ValueError(f"strict_band and closing_radius are fractions of the grid's side in [0, 0.25), got "
+                             f"{self.strict_band} and {self.closing_radius}")
 
 
-def _ball(radius: int) -> np.ndarray:
-    i = np.mgrid[-radius:radius + 1, -radius:radius + 1, -radius:radius + 1]
-    return (i**2).sum(0) <= radius * radius
+def _ball(radius: float) -> np.ndarray:
+    """A ball of ``radius`` voxels (at least the 6-neighbourhood) as a boolean footprint."""
+    n = max(1, int(np.floor(radius)))
+    i = np.mgrid[-n:n + 1, -n:n + 1, -n:n + 1]
+    return (i**2).sum(0) <= max(radius, 1.0) ** 2 + 1e-9
 
 
 def _cut_at_plane(field: np.ndarray, grid: Grid, settings: InitMeshSettings,
@@ -130,26 +134,20 @@ def _cut_at_plane(field: np.ndarray, grid: Grid, settings: InitMeshSettings,
     return np.minimum(field, height)
 
 
-def euler_characteristic(mesh: Mesh) -> int:
-    """V - E + F of a triangle mesh (2 - 2 genus for one closed, orientable surface)."""
-    f = mesh.t_pos_idx
-    edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
-    return int(len(np.unique(f)) - len(edges) + len(f))
-
-
 def hull_field(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid, settings: InitMeshSettings,
                plane: SupportPlane | None = None, tight: bool = True) -> tuple[np.ndarray, np.ndarray, dict]:
     """The initial shape's distance field on ``grid`` (world units, positive inside).
 
-    1. The voted hull (:func:`recon.hull.silhouette_fields`, ``outside_fraction``): its topology
-       is what the views support, a minority of wrong masks carves nothing.
-    2. A grey-scale closing of it by a ball of ``closing_voxels``: thin tunnels close.
-    3. With ``tight``: ``max(strict, voted - strict_band_voxels * voxel)``, i.e. the strict hull
-       where the voted one lies within the band outside it (the vote's inflation) and the voted
-       one where a few views carved deeper (their errors: a tunnel becomes a dimple as deep as
-       the band at each end). Kept only when its surface has the voted one's Euler
-       characteristic (a wrong view's cone that grazes the surface can leave a tunnel inside
-       the band); else the voted field is used.
+    1. The voted hull V and the strict hull S (:func:`recon.hull.silhouette_fields` with
+       ``outside_fraction``): a minority of wrong masks carves nothing from V.
+    2. With ``tight``: ``max(S, V - band)``, ``band = strict_band`` x the grid's side: S where V
+       lies within the band outside it (the vote's inflation, and its thin fins along the views'
+       rims, which bridge tunnels), V less the band where a few views carved deeper (their errors:
+       a tunnel becomes a dimple about as deep as the band at each end, a cut-off part returns
+       a band thinner). Without ``tight`` (the coarse hull that sizes the grid): V.
+    3. A grey-scale closing by a ball of ``closing_radius`` x the grid's side: the shallow
+       tunnels a wrong view's cone leaves where it grazes the surface within the band close,
+       as does any tunnel thinner than about twice the radius.
     4. Cut at the support plane, when there is one.
 
     Returns the field, the views seeing each voxel, and a dict for the stage's statistics.
@@ -159,29 +157,22 @@ def hull_field(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid, settin
                               settings.outside_fraction)
     except HullError as e:
         raise InitMeshError(str(e)) from e
-    voted = h.voted
-    if settings.closing_voxels > 0:
+    side = grid.step * grid.resolution
+    field = h.voted
+    banded = tight and settings.strict_band > 0 and settings.outside_fraction > 0
+    if banded:
+        field = np.maximum(h.strict, h.voted - np.float32(settings.strict_band * side))
+    radius = settings.closing_radius * grid.resolution  # in voxels
+    if radius >= 0.5:
         from scipy import ndimage
 
-        voted = ndimage.grey_closing(voted, footprint=_ball(settings.closing_voxels), mode="nearest")
-    info = {"outside_fraction": settings.outside_fraction, "closing_voxels": settings.closing_voxels,
-            "strict_band_voxels": settings.strict_band_voxels, "surface": "voted"}
-    if not (tight and settings.strict_band_voxels > 0 and settings.outside_fraction > 0):
-        return _cut_at_plane(voted, grid, settings, plane), h.seen, info
-    band = np.maximum(h.strict, voted - np.float32(settings.strict_band_voxels * grid.step))
-    voted = _cut_at_plane(voted, grid, settings, plane)
-    band = _cut_at_plane(band, grid, settings, plane)
-    if not (band > 0).any() or not (voted > 0).any():
-        return voted, h.seen, info
-    chi_voted = euler_characteristic(largest_component(isosurface(voted, grid)))
-    chi_band = euler_characteristic(largest_component(isosurface(band, grid)))
-    info["euler_voted"], info["euler_banded"] = chi_voted, chi_band
-    if chi_band != chi_voted:
-        log.info("the strict hull within %.3g voxels of the voted one changes its topology (Euler characteristic "
-                 "%d, voted %d): the voted surface is used", settings.strict_band_voxels, chi_band, chi_voted)
-        return voted, h.seen, info
-    info["surface"] = "strict within the band, voted elsewhere"
-    return band, h.seen, info
+        field = ndimage.grey_closing(field, footprint=_ball(radius), mode="nearest")
+    info = {"outside_fraction": settings.outside_fraction,
+            "strict_band": settings.strict_band if banded else 0.0,
+            "closing_radius": settings.closing_radius if radius >= 0.5 else 0.0,
+            "band_voxels": settings.strict_band * grid.resolution if banded else 0.0,
+            "closing_voxels": radius if radius >= 0.5 else 0.0}
+    return _cut_at_plane(field, grid, settings, plane), h.seen, info
 
 
 def flatten_base(mesh: Mesh, plane: SupportPlane, tolerance: float) -> tuple[Mesh, int]:
