@@ -508,6 +508,69 @@ def test_jpeg_exif_exposure_normalization(tmp_path):
     assert rec["images"]["short"]["focal_length_source"] == "35mm_equivalent"
 
 
+def test_jpeg_focal_length_from_the_focal_plane_resolution(tmp_path):
+    """A DSLR's JPEG without a 35 mm equivalent (the Canon EOS Rebel T3): FocalLength x
+    FocalPlaneXResolution (unit inch) at the width the camera wrote (PixelXDimension), scaled to
+    the file's width and to the linear views' (linearize.max_size); a 35 mm equivalent wins
+    where both are written; a resolution implying an impossible sensor is not used; the EXIF
+    Flash tag is read (bit 0: fired)."""
+    from PIL import Image
+
+    from recon.linearize.metadata import flash_fired, focal_length_px, read_meta
+
+    images = tmp_path / "cap" / "images"
+    images.mkdir(parents=True)
+    rgb, _ = scene(0, highlight=False)
+    enc = np.round(_srgb_encode(rgb * 0.5) * 255).astype(np.uint8)
+
+    def save(name, f35=None, res=4720.441988950276, unit=2, written_width=None, flash=None):
+        ex = Image.Exif()
+        ifd = ex.get_ifd(0x8769)
+        ifd[0x829A], ifd[0x829D], ifd[0x8827], ifd[0x920A] = 0.1, 18.0, 800, 55.0
+        ifd[0xA20E], ifd[0xA210] = res, unit
+        if written_width:
+            ifd[0xA002] = written_width
+        if f35:
+            ifd[0xA405] = f35
+        if flash is not None:
+            ifd[0x9209] = flash
+        Image.fromarray(enc).save(images / f"{name}.jpg", exif=ex, quality=95)
+        return images / f"{name}.jpg"
+
+    t3 = 55.0 / 25.4 * 4720.441988950276  # 10,221 px at the T3's 4272 px
+    v = read_meta(save("t3", written_width=4272, flash=9))
+    assert focal_length_px(v, 4272, 2848) == (pytest.approx(t3), "focal_plane_resolution")
+    assert focal_length_px(v, W, H)[0] == pytest.approx(t3 * W / 4272)  # a copy reduced to W
+    assert flash_fired(v) is True
+    v = read_meta(save("cm", res=t3 / 55.0 * 10.0, unit=3, written_width=4272, flash=16))  # pixels per cm
+    assert focal_length_px(v, 4272, 2848) == (pytest.approx(t3), "focal_plane_resolution") and flash_fired(v) is False
+    v = read_meta(save("own", res=W / 23.0, unit=4))  # px/mm of the file itself (no PixelXDimension): 23 mm wide
+    assert focal_length_px(v, W, H) == (pytest.approx(55.0 * W / 23.0), "focal_plane_resolution")
+    v = read_meta(save("both", f35=88, written_width=4272))
+    assert focal_length_px(v, W, H) == (pytest.approx(88 * np.hypot(W, H) / np.hypot(36, 24)), "35mm_equivalent")
+    v = read_meta(save("tiny", res=1e6, written_width=4272))  # a 0.1 mm sensor: a wrong tag
+    assert focal_length_px(v, W, H) == (None, None) and flash_fired(v) is None
+    (images / "tiny.jpg").unlink()
+    rec = linearize_capture(tmp_path / "cap", tmp_path / "linear", LinearizeSettings(max_size=W // 2))
+    e = rec["images"]["t3"]
+    assert e["focal_length_source"] == "focal_plane_resolution"
+    assert e["focal_length_px"] == pytest.approx(t3 * W / 4272 * e["width"] / W)
+
+
+def test_real_dslr_jpegs_focal_length(tmp_path, shared_data):
+    """The real skull's Canon EOS Rebel T3 JPEGs (no 35 mm equivalent): 10,221 px at 4272 px
+    wide from the focal plane resolution, 3828 px at the 1600 px of the linear views; SfM
+    finds 3651-3711 px (docs/sfm_speed.md): 3-5 % less, within the prior's 5 %."""
+    from recon.linearize.metadata import flash_fired, focal_length_px, read_meta
+
+    photo = shared_data / "real" / "skull-flash" / "images" / "01.JPG"
+    v = read_meta(photo)
+    f, source = focal_length_px(v, 4272, 2848)
+    assert source == "focal_plane_resolution" and f == pytest.approx(10221.4, abs=0.5)
+    assert focal_length_px(v, 4272, 2848)[0] * 1600 / 4272 == pytest.approx(3828.3, abs=0.5)
+    assert flash_fired(v) is True
+
+
 def test_exr_passes_through(tmp_path):
     images = tmp_path / "cap" / "images"
     images.mkdir(parents=True)
