@@ -90,6 +90,8 @@ def tree_hashes(root: Path) -> dict[str, str]:
             for p in sorted(root.rglob("*")) if p.is_file()}
 
 
+PHOTOS = {"cameras": False, "masks": False, "init_mesh": False}  # sphere_capture: the photos alone
+
 # ---- the edits ----
 def _yaml(text: str) -> Callable[[Path], None]:
     return lambda cap: (cap / "capture.yaml").write_text(text)
@@ -153,6 +155,46 @@ def _repeat_photo(n: int) -> Callable[[Path], None]:
         for k in range(1, n):
             shutil.copyfile(cap / "images" / "0000.png", cap / "images" / f"{k:04d}.png")
     return apply
+
+
+def _fill_photos(value: float) -> Callable[[Path], None]:
+    """Every photo replaced by one of a single grey ``value`` (0: black, 1: white), same size."""
+    def apply(cap: Path) -> None:
+        for p in sorted((cap / "images").glob("*.png")):
+            write_png(p, np.full((48, 64, 3), value))
+    return apply
+
+
+def _fill_photo(stem: str, value: float) -> Callable[[Path], None]:
+    return lambda cap: write_png(cap / "images" / f"{stem}.png", np.full((48, 64, 3), value))
+
+
+def _white_dngs(cap: Path) -> None:
+    """The photos replaced by DNGs whose every sensor site is at the white level (a clipped sensor)."""
+    from recon.io.dng import write_dng
+    from recon.synth.sensor import SensorModel
+
+    sensor = SensorModel()
+    for p in sorted((cap / "images").glob("*.png")):
+        write_dng(p.with_suffix(".dng"), np.full((48, 64), sensor.white_level, np.uint16), sensor, 1 / 60, 100, 5.6)
+        p.unlink()
+
+
+def flash_jpegs(cap: Path, flash: Callable[[int], int | None]) -> None:
+    """The photos as JPEGs with EXIF: ``flash(k)`` is view k's EXIF Flash value (9: fired, forced
+    on; 16: did not fire, forced off; None: no Flash tag), as a Canon EOS Rebel T3 writes it."""
+    from PIL import Image
+
+    for k, p in enumerate(sorted((cap / "images").glob("*.png"))):
+        exif = Image.Exif()
+        exif[0x010F], exif[0x0110] = "Canon", "Canon EOS REBEL T3"
+        sub = {0x829A: 0.1, 0x829D: 18.0, 0x8827: 800, 0x920A: 55.0}
+        if flash(k) is not None:
+            sub[0x9209] = flash(k)
+        exif.get_ifd(0x8769).update(sub)
+        with Image.open(p) as im:
+            im.convert("RGB").save(p.with_suffix(".jpg"), quality=95, exif=exif.tobytes())
+        p.unlink()
 
 
 @dataclass(frozen=True)
@@ -255,4 +297,23 @@ CASES = [
          base={"cameras": False, "masks": False, "init_mesh": False}),
     Case("one_photo_copied", _repeat_photo(2), "images/0001.png",
          warning=r"identical photos .*0000.png = .*0001.png"),
+    # what the photos show (issue 32 item 3): black, white, no flash; said as such, not as copies
+    Case("all_photos_black", _fill_photos(0.0), "images",
+         r"all 8 photos are black \(their brightest pixels reach at most 0% of full scale\): nothing in them is "
+         r"lit\. The method needs one photo per view of the object lit by a flash", base=PHOTOS),
+    Case("all_photos_white", _fill_photos(1.0), "images",
+         r"all 8 photos are white \(at least 100% of their pixels are clipped at full scale\): overexposed",
+         base=PHOTOS),
+    Case("all_dngs_clipped", _white_dngs, "images", r"all 8 photos are white .*: overexposed", base=PHOTOS),
+    Case("one_photo_black", _fill_photo("0003", 0.0), "images/0003.png",
+         r"1 of the 8 photos are black .*images/0003.png; retake them"),
+    Case("one_photo_white", _fill_photo("0005", 1.0), "images/0005.png",
+         r"1 of the 8 photos are white .*images/0005.png; retake them"),
+    Case("no_flash_fired", lambda cap: flash_jpegs(cap, lambda k: 16), "images",
+         r"the EXIF of all 8 photos says the flash did not fire; the method needs one photo per view lit by a "
+         r"flash at the camera", base=PHOTOS),
+    Case("some_flash_not_fired", lambda cap: flash_jpegs(cap, lambda k: 16 if k in (2, 6) else 9),
+         "images/0006.jpg",
+         r"the EXIF of 2 of the 8 photos \(8 say whether the flash fired\) says the flash did not fire: "
+         r".*images/0002.jpg, .*images/0006.jpg; the method needs", base=PHOTOS),
 ]

@@ -56,6 +56,33 @@ def test_warning_names_the_file(case, sphere_base, tmp_path, caplog):
     assert tree_hashes(cap) == before
 
 
+def test_flash_photos_pass(tmp_path):
+    """JPEGs whose EXIF says the flash fired (Flash 9, a Canon's pop-up flash forced on), or that
+    do not say, pass without a word about the flash."""
+    from badinput_cases import PHOTOS, flash_jpegs
+
+    for name, flash in (("fired", lambda k: 9), ("unsaid", lambda k: None), ("mixed", lambda k: 9 if k % 2 else None)):
+        cap = sphere_capture(tmp_path / name, **PHOTOS)
+        flash_jpegs(cap, flash)
+        report = validate_capture(cap, "draft")
+        assert len(report["views"]) == 8 and report["warnings"] == [], report
+
+
+def test_levels_of_real_flash_photos(shared_data):
+    """The real skull's flash JPEGs (4272 x 2848) are neither black nor white, their EXIF says
+    the flash fired, and reading their levels at 1/8 size is quick."""
+    from recon.linearize.metadata import flash_fired, read_meta
+    from recon.validate import BLACK_LEVEL, WHITE_FRACTION, photo_levels
+
+    photos = sorted((shared_data / "real" / "skull-flash" / "images").glob("*.JPG"))[:6]
+    t0 = time.perf_counter()
+    for p in photos:
+        top, clipped = photo_levels(p)
+        assert top > 10 * BLACK_LEVEL and clipped < WHITE_FRACTION / 10, (p, top, clipped)
+        assert flash_fired(read_meta(p)) is True
+    assert (time.perf_counter() - t0) / len(photos) < 1.0
+
+
 def test_photos_without_camera_are_reported_dropped(sphere):
     import json
 
