@@ -42,7 +42,7 @@ from recon.io.mesh import read_obj  # noqa: E402
 from recon.linearize.stage import linearize_capture  # noqa: E402
 from recon.optimize.gbuffer import build_gbuffer  # noqa: E402
 from recon.optimize.imaging import (  # noqa: E402
-    TERMS, ImagingModel, ImagingProblem, ImagingSettings, apply_tone, falloff, fit_imaging, heldout_tiles,
+    TERMS, ImagingModel, ImagingProblem, ImagingSettings, falloff, fit_imaging, heldout_tiles, recorded_exposures,
     select_imaging, srgb_encode)
 from recon.optimize.material import MaterialModel, SelectionSettings, fit_model  # noqa: E402
 from recon.optimize.remesh import rasterize_atlas  # noqa: E402
@@ -100,7 +100,10 @@ def prepare(root: Path, case: str, args) -> dict:
     gb = build_gbuffer(mesh, list(tr.cameras), args.gspp, 0)
     start = fit_model(MATERIAL, gb, tr, const, covered, light, scale, SelectionSettings(iterations=150))
     gt = json.loads((cap / "gt" / "imaging.json").read_text()) if (cap / "gt" / "imaging.json").is_file() else None
+    # the EXIF exposures linearize divided out: where the tone curve acts (JPEG captures)
+    exposure = recorded_exposures([lin / info["images"][c.stem]["exr"] for c in cams.frames])
     return dict(cap=cap, mesh=mesh, train=tr, held=he, train_idx=train, light=light, scale=scale, covered=covered,
+                exposure=exposure,
                 s=s, start=start, gt=gt, ldr=kw["format"] == "jpg", t_synth=t_synth)
 
 
@@ -135,7 +138,8 @@ def parameter_errors(p: dict, params, bbox: float, r2_max: float = 1.0) -> dict:
         x = torch.linspace(0.01, 0.9, 90)
         tc = gt["tone_curve"]
         truth = linearized_tone(x.numpy(), tc["name"], tc["contrast"])
-        fitted = apply_tone(x, params.tone_raw.detach()).numpy()
+        with torch.no_grad():
+            fitted = params.tone(x).numpy()
         errs["tone_max_abs_encoded"] = float(np.max(np.abs(srgb_encode(torch.tensor(fitted)).numpy()
                                                            - srgb_encode(torch.tensor(truth)).numpy())))
     return errs
@@ -148,8 +152,8 @@ def run_case(root: Path, case: str, args) -> dict:
     bbox = float(np.max(hi - lo))
     gb_t = build_gbuffer(p["mesh"], list(p["train"].cameras), args.gspp, 0)
     gb_h = build_gbuffer(p["mesh"], list(p["held"].cameras), args.gspp, 1)
-    pt = ImagingProblem(gb_t, p["train"], s.tone_map, p["scale"], s.tile)
-    ph = ImagingProblem(gb_h, p["held"], s.tone_map, p["scale"], s.tile)
+    pt = ImagingProblem(gb_t, p["train"], s.tone_map, p["scale"], s.tile, p["exposure"])
+    ph = ImagingProblem(gb_h, p["held"], s.tone_map, p["scale"], s.tile, p["exposure"])
     terms = [t for t in TERMS if t != "tone" or p["ldr"]]
     r2_max = float(pt.r2[(pt.weight[:, 0] > 0) & (pt.target_linear.sum(1) > 0)].max())
     modelled_terms = terms if case == "phone" else ([case] if case in TERMS else [])
@@ -167,7 +171,7 @@ def run_case(root: Path, case: str, args) -> dict:
     if not args.no_selection:
         t0 = time.perf_counter()
         _, ev = select_imaging(p["mesh"], p["start"], p["covered"], p["train"], p["held"], p["light"], p["scale"], s,
-                               im, candidates=tuple(terms), spp=args.gspp)
+                               im, candidates=tuple(terms), spp=args.gspp, exposure=p["exposure"])
         row["selection"] = {"chosen": ev["chosen"], "seconds": time.perf_counter() - t0,
                             "steps": [{k: r.get(k) for k in ("step", "accepted", "gain", "se", "relative_gain",
                                                              "heldout_error", "control_heldout_error")}

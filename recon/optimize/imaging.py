@@ -8,7 +8,7 @@ coarse-to-fine optimization, as for the material model, :mod:`recon.optimize.mat
 prediction of the linearized photo of view k at pixel p is::
 
     x_p   = mean over the pixel's samples of  L_flash(y; light at o_k + R_k^T t) + A (a_d + a_s)
-    pred  = h( x_p * g_k * v(r_p) )
+    pred  = h_k( x_p * g_k * v(r_p) )
 
 with the terms (each optional, :data:`TERMS`):
 
@@ -23,10 +23,20 @@ with the terms (each optional, :data:`TERMS`):
   reflects a_d A (the specular lobe's hemispherical albedo is taken as a_s; no occlusion).
 - ``falloff`` v(r) = 1 + k1 r^2 + k2 r^4 (r = 1 in the image corners), floored smoothly at
   ``FALLOFF_FLOOR`` so that it never reaches 0.
-- ``tone`` h: a monotone curve shared by the views of a JPEG capture (identity for RAW and
-  EXR, never tried there): piecewise linear in the sRGB-encoded domain with ``tone_knots``
-  segments, h(0) = 0, h(1) = 1, increments softplus(raw) >= 0 (a flat segment is allowed),
-  i.e. pred = srgb^-1(H(srgb(min(y, 1)))).
+- ``tone`` h_k: a monotone curve H shared by the views of a JPEG capture (identity for RAW
+  and EXR, never tried there) acting on what the camera recorded, before linearize divided the
+  view's recorded (EXIF) exposure e_k out (:func:`recorded_exposures`; relative to the
+  reference exposure): h_k(y) = srgb^-1(H(srgb(c e_k y))) / e_k. H is piecewise linear in the
+  sRGB-encoded domain with ``tone_knots`` segments, h(0) = 0, h(1) = 1 (the camera's white, a
+  JPEG's 255), increments softplus(raw) >= 0 (a flat segment is allowed), continued above white
+  with its last segment's slope (a prediction over white keeps a gradient; the photo's pixels
+  there are clipped and carry no loss); c is the curve's input scale (prior log c ~
+  N(0, ``tone_gain_prior``)): where the camera's white sits in the model's units, which the
+  albedo maps could only move texel by texel. The first design, srgb^-1(H(srgb(min(y, 1)))) on
+  the linearized values, was a different curve for every recorded exposure: a phone's
+  auto-exposure of +-0.3 to 0.5 stop made the tone term's held-out gain vanish on a glazed bell
+  that one without the EXIF variation gains from (``bench/tone.py``, docs/phone.md "The tone
+  curve however the phone made it").
 
 Selection: forward selection in rounds: each remaining term is fitted on top of the current
 terms with the material maps of the chosen material model (warm-started from the accepted fit)
@@ -93,6 +103,8 @@ class ImagingSettings:
     exposure_prior: float = 0.25  # standard deviation of log g_k around the EXIF exposure
     tone_knots: int = 16
     heldout_iterations: int = 60
+    tone_gain: bool = True  # the curve's input scale c fitted (False: c = 1, the first design)
+    tone_gain_prior: float = 1.0  # standard deviation of log c
 
 
 # ---------------------------------------------------------------------- the terms
@@ -113,15 +125,38 @@ def tone_knot_values(raw: torch.Tensor) -> torch.Tensor:
     return torch.cat([torch.zeros(1, dtype=c.dtype), c])
 
 
-def apply_tone(y: torch.Tensor, raw: torch.Tensor) -> torch.Tensor:
-    """pred = srgb^-1(H(srgb(min(y, 1)))), H piecewise linear through :func:`tone_knot_values`."""
+def _encode_ext(x: torch.Tensor) -> torch.Tensor:
+    """The sRGB encoding on [0, inf) (the formula continued above 1, not clipped)."""
+    c = x.clamp(min=0.0)
+    return torch.where(c <= 0.0031308, 12.92 * c, 1.055 * c.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def _decode_ext(s: torch.Tensor) -> torch.Tensor:
+    """The inverse of :func:`_encode_ext` on [0, inf)."""
+    c = s.clamp(min=0.0)
+    return torch.where(c <= 0.04045, c / 12.92, ((c.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4)
+
+
+def apply_tone(y: torch.Tensor, raw: torch.Tensor, log_gain: torch.Tensor | None = None,
+               exposure: torch.Tensor | None = None) -> torch.Tensor:
+    """pred = srgb^-1(H(srgb(c e y))) / e with H piecewise linear through
+    :func:`tone_knot_values` (h(0) = 0, h(1) = 1: the camera's white), c = exp(``log_gain``) the
+    curve's input scale (1 when None) and e the recorded exposure of the pixel's view relative to
+    the reference linearize scaled to (``exposure``, broadcast against ``y``; 1 when None): the
+    curve acts on what the camera recorded, before linearize divided its exposure out. Above
+    white (c e y > 1) H continues with its last segment's slope, so that a prediction over white
+    keeps a gradient (a photo's pixels there are clipped and carry no loss)."""
     knots = tone_knot_values(raw)
     K = knots.shape[0] - 1
-    s = srgb_encode(y) * K
+    u = y if log_gain is None else y * torch.exp(log_gain)
+    if exposure is not None:
+        u = u * exposure
+    s = _encode_ext(u) * K
     i = s.detach().floor().clamp(0, K - 1).long()
     t = s - i.to(s.dtype)
     h = knots[i] + t * (knots[i + 1] - knots[i])
-    return srgb_decode(h)
+    out = _decode_ext(h)
+    return out if exposure is None else out / exposure
 
 
 def falloff(r2: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
@@ -175,7 +210,7 @@ class ImagingParams:
     """
 
     def __init__(self, model: ImagingModel, n_views: int, length: float, tone_scale: float,
-                 offset_given=None, knots: int = 16, normalize_gains: bool = True):
+                 offset_given=None, knots: int = 16, normalize_gains: bool = True, tone_gain: bool = True):
         dt = torch.float32
         self.model = model
         self.length = float(length)
@@ -187,6 +222,8 @@ class ImagingParams:
         self.ambient_raw = torch.full((1,), -4.0, dtype=dt, requires_grad=True)
         self.falloff_k = torch.zeros(2, dtype=dt, requires_grad=True)
         self.tone_raw = torch.zeros(int(knots), dtype=dt, requires_grad=True)
+        self.tone_gain = bool(tone_gain)
+        self.tone_log_gain = torch.zeros((), dtype=dt, requires_grad=True)
 
     def groups(self, lr: float) -> list[dict]:
         """Adam parameter groups of the modelled terms."""
@@ -202,6 +239,8 @@ class ImagingParams:
             out.append({"params": [self.falloff_k], "lr": 0.5 * lr})
         if m.has("tone"):
             out.append({"params": [self.tone_raw], "lr": lr})
+            if self.tone_gain:
+                out.append({"params": [self.tone_log_gain], "lr": lr})
         return out
 
     # ---- values ----
@@ -225,12 +264,27 @@ class ImagingParams:
             return None
         return torch.nn.functional.softplus(self.ambient_raw) * self.tone_scale
 
-    def prior(self, sigma: float) -> torch.Tensor:
-        """The EXIF exposure prior: mean (log g_k / sigma)^2 / 2 (0 without the term)."""
-        if not self.model.has("exposure"):
-            return torch.zeros(())
-        g = self.gains()
-        return 0.5 * (torch.log(g) / sigma).pow(2).mean()
+    def tone_input_gain(self) -> torch.Tensor | None:
+        """log c of the tone curve's input (None: without the term or with c fixed at 1)."""
+        return self.tone_log_gain if self.model.has("tone") and self.tone_gain else None
+
+    def tone(self, y: torch.Tensor, exposure: torch.Tensor | None = None) -> torch.Tensor:
+        """The tone term on linear values ``y`` (:func:`apply_tone`; ``y`` unchanged without it)."""
+        if not self.model.has("tone"):
+            return y
+        return apply_tone(y, self.tone_raw, self.tone_input_gain(), exposure)
+
+    def prior(self, sigma: float, tone_sigma: float = 1.0) -> torch.Tensor:
+        """The EXIF exposure prior: mean (log g_k / sigma)^2 / 2 (0 without the term), plus
+        (log c / ``tone_sigma``)^2 / 2 for the tone curve's input scale."""
+        out = torch.zeros(())
+        if self.model.has("exposure"):
+            g = self.gains()
+            out = out + 0.5 * (torch.log(g) / sigma).pow(2).mean()
+        lc = self.tone_input_gain()
+        if lc is not None:
+            out = out + 0.5 * (lc / tone_sigma).pow(2)
+        return out
 
     def clone(self, n_views: int | None = None, normalize_gains: bool | None = None) -> "ImagingParams":
         """An independent copy (same terms, same values); for ``n_views`` other views (e.g.
@@ -238,12 +292,12 @@ class ImagingParams:
         out = ImagingParams(self.model, int(self.log_gain.shape[0]) if n_views is None else int(n_views), self.length,
                             self.tone_scale, None if self.offset_given is None else self.offset_given.numpy(),
                             int(self.tone_raw.shape[0]),
-                            self.normalize_gains if normalize_gains is None else bool(normalize_gains))
+                            self.normalize_gains if normalize_gains is None else bool(normalize_gains), self.tone_gain)
         return out.copy_from(self)
 
     def copy_from(self, other: "ImagingParams") -> "ImagingParams":
         with torch.no_grad():
-            for name in ("offset_raw", "ambient_raw", "falloff_k", "tone_raw"):
+            for name in ("offset_raw", "ambient_raw", "falloff_k", "tone_raw", "tone_log_gain"):
                 getattr(self, name).copy_(getattr(other, name))
             if self.log_gain.shape == other.log_gain.shape:
                 self.log_gain.copy_(other.log_gain)
@@ -267,11 +321,25 @@ class ImagingParams:
                               "corner": float(falloff(torch.ones(1), self.falloff_k)[0])}
         if m.has("tone"):
             x = torch.linspace(0, 1, knots_out)
-            out["tone_curve"] = {"linear_in": x.tolist(), "linearized_out": apply_tone(x, self.tone_raw).tolist()}
+            lc = self.tone_input_gain()
+            out["tone_curve"] = {"linear_in": x.tolist(), "linearized_out": self.tone(x).tolist(),
+                                 "input_gain": 1.0 if lc is None else float(torch.exp(lc)),
+                                 "white_linear": 1.0 if lc is None else float(torch.exp(-lc))}
         return out
 
 
 # ---------------------------------------------------------------------- the problem
+def view_exposures(cameras, exposure: dict | None) -> torch.Tensor | None:
+    """(V,) recorded exposures of ``cameras`` (by image stem) relative to the reference, or None
+    when none is given or all are 1 (the tone curve then acts on the linearized values as they are)."""
+    if not exposure:
+        return None
+    e = np.array([float(exposure.get(getattr(c, "stem", None), 1.0)) for c in cameras], np.float64)
+    if not np.all(np.isfinite(e) & (e > 0)):
+        raise ValueError(f"recorded exposures must be finite and > 0, got {e}")
+    return None if np.all(e == 1.0) else torch.tensor(e, dtype=torch.float32)
+
+
 def _camera_arrays(cameras) -> tuple[torch.Tensor, torch.Tensor]:
     R = torch.tensor(np.stack([c.world_to_camera[:3, :3] for c in cameras]), dtype=torch.float32)
     o = torch.tensor(np.stack([c.center for c in cameras]), dtype=torch.float32)
@@ -281,9 +349,13 @@ def _camera_arrays(cameras) -> tuple[torch.Tensor, torch.Tensor]:
 class ImagingProblem(_Problem):
     """A G-buffer and its targets (the kept pixels as in the material fits,
     :class:`recon.optimize.material._Problem`) with the per-pixel data the imaging terms need:
-    view index, squared image radius, checkerboard tile colour."""
+    view index, squared image radius, checkerboard tile colour, and the recorded exposure of the
+    pixel's view relative to the reference (``exposure``: image stem -> h_k / h_ref as linearize
+    recorded it, :func:`recorded_exposures`; views not in it, or None, at 1): the tone curve acts
+    before linearize divided it out."""
 
-    def __init__(self, gb: GBuffer, targets: ViewSet, tone: str, scale: float, tile: int = 8):
+    def __init__(self, gb: GBuffer, targets: ViewSet, tone: str, scale: float, tile: int = 8,
+                 exposure: dict | None = None):
         if gb.position is None:
             raise ValueError("ImagingProblem needs a G-buffer with positions and normals (build_gbuffer)")
         super().__init__(gb, targets, tone, scale)
@@ -299,6 +371,9 @@ class ImagingProblem(_Problem):
         self.R, self.o = _camera_arrays(targets.cameras)
         self.shape = (V, H, W)
         self.tile = int(tile)
+        e = view_exposures(targets.cameras, exposure)
+        self.view_exposure = e
+        self.pixel_exposure = None if e is None else e[self.pixel_view][:, None]
 
     def render(self, d, sp, ro, light: float, r_min: float, im: ImagingParams) -> torch.Tensor:
         """(P, 3) predicted linearized values of the kept pixels."""
@@ -320,9 +395,7 @@ class ImagingProblem(_Problem):
             out = out * g[self.pixel_view][:, None]
         if im.model.has("falloff"):
             out = out * falloff(self.r2, im.falloff_k)[:, None]
-        if im.model.has("tone"):
-            out = apply_tone(out, im.tone_raw)
-        return out
+        return im.tone(out, self.pixel_exposure)
 
     def loss(self, rendered: torch.Tensor, select: torch.Tensor | None = None) -> torch.Tensor:
         e = self.pixel_errors(rendered)
@@ -379,7 +452,7 @@ def fit_imaging(model: ImagingModel, material: MaterialModel, prob: ImagingProbl
     t0 = time.perf_counter()
     P = _Params(material, init_maps, covered, s)
     n_views = prob.shape[0]
-    ip = ImagingParams(model, n_views, length, tone_scale, offset_given, im.tone_knots)
+    ip = ImagingParams(model, n_views, length, tone_scale, offset_given, im.tone_knots, tone_gain=im.tone_gain)
     if init_params is not None:
         ip.copy_from(init_params)
     groups = [{"params": P.parameters(), "lr": s.lr}] + ip.groups(im.lr)
@@ -397,7 +470,7 @@ def fit_imaging(model: ImagingModel, material: MaterialModel, prob: ImagingProbl
         terms = {"render": loss, **objective.material_terms(
             sp if material.specular == "textured" else None, d, ro if material.roughness == "textured" else None,
             valid, w, s.bilateral_sigma_space, s.bilateral_sigma_color, s.bilateral_radius)}
-        total = objective.total(terms, w, dtype=None) + ip.prior(im.exposure_prior) / prob.n_total
+        total = objective.total(terms, w, dtype=None) + ip.prior(im.exposure_prior, im.tone_gain_prior) / prob.n_total
         _lr_decay(opt, base, it, n)
         opt.zero_grad(set_to_none=True)
         total.backward()
@@ -426,7 +499,7 @@ def _heldout_gains(ip: ImagingParams, fit_on: torch.Tensor, render, prob: Imagin
     for it in range(n):
         for g in opt.param_groups:
             g["lr"] = 0.05 * 0.1 ** (it / max(n - 1, 1))
-        loss = prob.loss(render(ip), sel) + ip.prior(im.exposure_prior) / prob.n_total
+        loss = prob.loss(render(ip), sel) + ip.prior(im.exposure_prior, im.tone_gain_prior) / prob.n_total
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -471,29 +544,31 @@ def heldout_tiles_under(maps: dict, material: MaterialModel, p: ImagingParams, p
 
 
 def _problems(mesh, train: ViewSet, heldout: ViewSet, s: SelectionSettings, tone_scale: float, spp: int,
-              seed: int) -> tuple[ImagingProblem, ImagingProblem, float]:
+              seed: int, exposure: dict | None = None) -> tuple[ImagingProblem, ImagingProblem, float]:
     """The training and held-out views' problems on a fixed mesh and the mesh's size."""
     gb_train = build_gbuffer(mesh, list(train.cameras), spp, seed)
     gb_held = build_gbuffer(mesh, list(heldout.cameras), spp, seed + 1)
     lo, hi = mesh.bbox()
-    return (ImagingProblem(gb_train, train, s.tone_map, tone_scale, s.tile),
-            ImagingProblem(gb_held, heldout, s.tone_map, tone_scale, s.tile), float(np.max(hi - lo)))
+    return (ImagingProblem(gb_train, train, s.tone_map, tone_scale, s.tile, exposure),
+            ImagingProblem(gb_held, heldout, s.tone_map, tone_scale, s.tile, exposure), float(np.max(hi - lo)))
 
 
 def select_imaging(mesh, material_fit: Fit, covered: np.ndarray, train: ViewSet, heldout: ViewSet, light: float,
                    tone_scale: float, s: SelectionSettings, im: ImagingSettings | None = None,
                    candidates: tuple = TERMS, offset_given=None, spp: int = 4, seed: int = 0,
-                   progress=None) -> tuple[ImagingFit, dict]:
+                   progress=None, exposure: dict | None = None) -> tuple[ImagingFit, dict]:
     """Greedy forward selection of the imaging terms (module docstring) on a fixed mesh.
 
     ``material_fit`` (the chosen material model and its maps) is the start; ``candidates`` the
     terms to try (leave ``tone`` out for RAW/EXR captures, ``flash_offset`` when it is given:
     ``offset_given`` (3,) then applies to every fit). Returns the chosen fit (its maps refitted
-    under the chosen imaging) and the evidence for summary.json and the report.
+    under the chosen imaging) and the evidence for summary.json and the report. ``exposure``:
+    the views' recorded exposures (image stem -> h_k / h_ref, :func:`recorded_exposures`), where
+    the tone curve acts.
     """
     im = im or ImagingSettings()
     t0 = time.perf_counter()
-    p_train, p_held, length = _problems(mesh, train, heldout, s, tone_scale, spp, seed)
+    p_train, p_held, length = _problems(mesh, train, heldout, s, tone_scale, spp, seed, exposure)
     mat = material_fit.model
     base_model = ImagingModel()
     if offset_given is not None:
@@ -601,6 +676,32 @@ def capture_is_ldr(images) -> bool | None:
     return None
 
 
+def recorded_exposures(images) -> dict | None:
+    """Image stem -> the exposure linearize divided out (h_k / h_ref = 1 / ``exposure_scale`` of
+    its ``linear.json``, found as :func:`capture_is_ldr` finds it), or None when not found or
+    every view was taken at the reference exposure. A phone's auto-exposure changes the recorded
+    exposure from shot to shot, and its tone curve acts before linearize divides it out."""
+    import json
+    from pathlib import Path
+
+    if not images:
+        return None
+    d = Path(images[0]).parent
+    for cand in (d / "linear.json", d.parent.parent / "linear" / "linear.json"):
+        if cand.is_file():
+            try:
+                info = json.loads(cand.read_text())
+            except (OSError, ValueError):
+                return None
+            out = {}
+            for stem, v in info.get("images", {}).items():
+                sc = v.get("exposure_scale") if isinstance(v, dict) else None
+                if isinstance(sc, (int, float)) and np.isfinite(sc) and sc > 0:
+                    out[str(stem)] = 1.0 / float(sc)
+            return out if out and any(abs(e - 1.0) > 1e-9 for e in out.values()) else None
+    return None
+
+
 def candidate_terms(settings, ldr: bool | None) -> tuple[tuple, bool]:
     """The terms of ``imaging_terms`` to try and whether the tone curve is among them
     (``tone_curve``: fit, identity, or auto = only for JPEG/PNG photos)."""
@@ -624,7 +725,7 @@ def run_imaging_selection(settings, mesh, maps: dict, material: MaterialModel, c
     fit, ev = select_imaging(mesh, Fit(material, maps, float("nan")), covered, train_set, heldout_set,
                              light, tone_scale, settings.imaging_selection_settings(), candidates=terms,
                              offset_given=settings.flash_offset, spp=int(settings.select_spp),
-                             seed=int(settings.seed) + 17)
+                             seed=int(settings.seed) + 17, exposure=recorded_exposures(images) if tone else None)
     ev["tone_curve"] = {"setting": settings.tone_curve, "photos_are_ldr": ldr, "tried": tone}
     return fit.material.maps, material, ev
 
@@ -646,9 +747,13 @@ class LoopImaging:
     ``params`` is None until the selection ran (the stages before it render the ideal formation).
     ``shared_from``: another run's loop imaging whose choice this run takes instead of selecting
     again (:meth:`share`): the camera refinement's paired runs, identical up to the selection.
+    ``exposure``: (training views,) their recorded exposures relative to the reference (the
+    views of :func:`recorded_exposures`; None: all 1), where the tone curve acts.
     """
 
-    def __init__(self, lr: float, exposure_prior: float, shared_from: "LoopImaging | None" = None):
+    def __init__(self, lr: float, exposure_prior: float, shared_from: "LoopImaging | None" = None,
+                 exposure: np.ndarray | None = None):
+        self.exposure = None if exposure is None else torch.as_tensor(np.asarray(exposure, np.float32))
         self.lr = float(lr)
         self.exposure_prior = float(exposure_prior)
         self.shared_from = shared_from
@@ -695,10 +800,14 @@ class LoopImaging:
         return {"flash_offset": None if off is None else off.numpy().astype(np.float64),
                 "ambient": 0.0 if amb is None else float(amb)}
 
-    def apply(self, img: torch.Tensor, idx, gains: torch.Tensor | None = None) -> torch.Tensor:
+    def apply(self, img: torch.Tensor, idx, gains: torch.Tensor | None = None,
+              exposure: torch.Tensor | None = None) -> torch.Tensor:
         """(B, h, w, 3) rendered radiance of the training views ``idx`` -> predicted photo.
         ``gains``: (B,) exposure gains of these images instead of the training views' (views
-        outside the training set, e.g. held-out views with their own fitted gains)."""
+        outside the training set, e.g. held-out views with their own fitted gains).
+        ``exposure``: (B,) recorded exposures of these images relative to the reference (where
+        the tone curve acts, :func:`apply_tone`); default: ``self.exposure[idx]`` for training
+        views (``gains`` None), else 1."""
         p = self.params
         if p is None:
             return img
@@ -712,7 +821,10 @@ class LoopImaging:
                 self._r2[(h, w)] = image_radius2(h, w)
             img = img * falloff(self._r2[(h, w)], p.falloff_k)[None, :, :, None].to(img.dtype)
         if m.has("tone"):
-            img = apply_tone(img, p.tone_raw)
+            if exposure is None and gains is None and self.exposure is not None:
+                exposure = self.exposure[torch.as_tensor(np.asarray(idx), dtype=torch.long)]
+            e = None if exposure is None else torch.as_tensor(exposure, dtype=img.dtype).reshape(-1, 1, 1, 1)
+            img = p.tone(img, e)
         return img
 
     def prior(self) -> torch.Tensor:
@@ -741,18 +853,19 @@ class LoopImaging:
         return {"evidence": self.evidence,
                 "params": None if p is None else {
                     "terms": list(p.model.terms), "n_views": int(p.log_gain.shape[0]), "length": p.length,
-                    "tone_scale": p.tone_scale, "knots": int(p.tone_raw.shape[0]),
+                    "tone_scale": p.tone_scale, "knots": int(p.tone_raw.shape[0]), "tone_gain": p.tone_gain,
                     "offset_given": None if p.offset_given is None else p.offset_given.tolist(),
                     "tensors": {k: getattr(p, k).detach().clone() for k in
-                                ("offset_raw", "log_gain", "ambient_raw", "falloff_k", "tone_raw")}},
+                                ("offset_raw", "log_gain", "ambient_raw", "falloff_k", "tone_raw", "tone_log_gain")}},
                 "optimizer": None if self.opt is None else self.opt.state_dict()}
 
     def load(self, state: dict) -> None:
         sp = state["params"]
         params = None
         if sp is not None:
+            # a state saved before the tone curve's input scale existed: c = 1, not fitted
             params = ImagingParams(ImagingModel(tuple(sp["terms"])), sp["n_views"], sp["length"], sp["tone_scale"],
-                                   sp["offset_given"], sp["knots"])
+                                   sp["offset_given"], sp["knots"], tone_gain=bool(sp.get("tone_gain", False)))
             with torch.no_grad():
                 for k, v in sp["tensors"].items():
                     getattr(params, k).copy_(v)
@@ -764,15 +877,16 @@ class LoopImaging:
 
 
 def select_for_loop(settings, mesh, maps: dict, material: MaterialModel, covered: np.ndarray, train_set: ViewSet,
-                    heldout_set: ViewSet, light: float, tone_scale: float, ldr: bool | None):
+                    heldout_set: ViewSet, light: float, tone_scale: float, ldr: bool | None,
+                    exposure: dict | None = None):
     """The imaging selection on the coarse model (``imaging_loop: select``): (ImagingParams of
     the chosen terms, or None when the ideal formation is kept and no flash offset is given;
-    the evidence)."""
+    the evidence). ``exposure``: :func:`recorded_exposures` of the photos (where the tone curve acts)."""
     terms, tone = candidate_terms(settings, ldr)
     fit, ev = select_imaging(mesh, Fit(material, maps, float("nan")), covered, train_set, heldout_set, light,
                              tone_scale, settings.imaging_selection_settings(), candidates=terms,
                              offset_given=settings.flash_offset, spp=int(settings.select_spp),
-                             seed=int(settings.seed) + 23)
+                             seed=int(settings.seed) + 23, exposure=exposure if tone else None)
     ev["tone_curve"] = {"setting": settings.tone_curve, "photos_are_ldr": ldr, "tried": tone}
     keep = bool(fit.model.terms) or settings.flash_offset is not None
     return (fit.params if keep else None), ev
@@ -780,13 +894,13 @@ def select_for_loop(settings, mesh, maps: dict, material: MaterialModel, covered
 
 def refit_under(params: ImagingParams, material: MaterialModel, mesh, maps: dict, covered: np.ndarray,
                 train_set: ViewSet, light: float, tone_scale: float, s: SelectionSettings, spp: int = 4,
-                seed: int = 0) -> ImagingFit:
+                seed: int = 0, exposure: dict | None = None) -> ImagingFit:
     """The material maps of ``material`` refitted on the final mesh under the imaging terms the
     loop used (``params``: their values the start, refined with the maps), so that the maps the
     asset carries are those of the model the shape was fitted with (the material selection
     before it compares models under the ideal formation)."""
     gb = build_gbuffer(mesh, list(train_set.cameras), spp, seed)
-    prob = ImagingProblem(gb, train_set, s.tone_map, tone_scale, s.tile)
+    prob = ImagingProblem(gb, train_set, s.tone_map, tone_scale, s.tile, exposure)
     lo, hi = mesh.bbox()
     offset = None if params.offset_given is None else params.offset_given.numpy()
     return fit_imaging(params.model, material, prob, maps, covered, light, s, ImagingSettings(), params,
@@ -794,7 +908,8 @@ def refit_under(params: ImagingParams, material: MaterialModel, mesh, maps: dict
 
 
 def material_scorer_under(params: ImagingParams, mesh, covered: np.ndarray, train_set: ViewSet, heldout_set: ViewSet,
-                          light: float, tone_scale: float, s: SelectionSettings, spp: int = 4, seed: int = 0):
+                          light: float, tone_scale: float, s: SelectionSettings, spp: int = 4, seed: int = 0,
+                          exposure: dict | None = None):
     """A ``scorer`` for :func:`recon.optimize.material.select_material` that fits and compares the
     material models under the imaging terms the loop used (``params``: the start of each fit,
     refined with its maps, as :func:`refit_under` does) and scores them as the imaging selection
@@ -803,7 +918,7 @@ def material_scorer_under(params: ImagingParams, mesh, covered: np.ndarray, trai
     phone's per-view exposure (up to +-50 % on the phone captures) is error every material model
     shares, and it buries a specular lobe's gain."""
     im = ImagingSettings()
-    p_train, p_held, length = _problems(mesh, train_set, heldout_set, s, tone_scale, spp, seed)
+    p_train, p_held, length = _problems(mesh, train_set, heldout_set, s, tone_scale, spp, seed, exposure)
     offset = None if params.offset_given is None else params.offset_given.numpy()
 
     def scorer(material: MaterialModel, init: dict) -> Fit:

@@ -181,7 +181,9 @@ class SynthSettings:
     falloff : (float, float)
         Phone: lens falloff ``1 + k1 r^2 + k2 r^4`` (r = 1 in the image corners).
     tone_curve : str
-        Phone (``format="jpg"`` only): ``none`` (sRGB) or ``phone`` (sRGB + an S-curve).
+        Phone (``format="jpg"`` only): ``none`` (sRGB), ``phone`` (sRGB + an S-curve) or one the
+        optimizer's model does not share (``gamma22``, ``filmic``, ``table``, ``toe_shoulder``:
+        :data:`recon.synth.imaging.TONE_CURVES`).
     tone_contrast : float
         Phone: the S-curve's exponent p (1 = no S-curve).
     jpeg_quality : int

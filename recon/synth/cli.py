@@ -16,6 +16,7 @@ import dataclasses
 import logging
 
 from recon.synth.capture import FORMATS, PRESETS, SCENES, SynthSettings, make_capture
+from recon.synth.imaging import TONE_CURVES
 from recon.synth.shapes import OBJECT_KINDS
 
 log = logging.getLogger(__name__)
@@ -63,8 +64,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="per-view white-balance error, standard deviation of the channel log gains")
     g.add_argument("--falloff", type=float, nargs=2, metavar=("K1", "K2"),
                    help="radial lens falloff 1 + K1 r^2 + K2 r^4 (r = 1 in the corners)")
-    g.add_argument("--tone-curve", dest="tone_curve", choices=("none", "phone"),
-                   help="format jpg: the phone's tone curve (sRGB + S-curve) or plain sRGB")
+    g.add_argument("--tone-curve", dest="tone_curve", choices=TONE_CURVES,
+                   help="format jpg: the camera's tone curve (recon.synth.imaging; none = plain sRGB)")
     g.add_argument("--tone-contrast", type=float, dest="tone_contrast", help="the S-curve's exponent")
     g.add_argument("--jpeg-quality", type=int, dest="jpeg_quality")
     g.add_argument("--falloff-gainmap", dest="falloff_gainmap", action="store_true", default=None,

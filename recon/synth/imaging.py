@@ -18,11 +18,25 @@ irradiance I_e / d^2 from the environment (its radiance is then a_d L_amb). The 
 variation of the EXIF (``exposure_variation`` stops) is the recorded part: linearize divides it
 out, leaving g_k.
 
-The tone curve ``phone`` is not sRGB: the sRGB encoding followed by a contrast S-curve
-``S(s) = s^p / (s^p + (1 - s)^p)`` (p = ``tone_contrast``; p = 1 is plain sRGB), flat (slope 0)
-at both ends for p > 1 like a phone's highlight/shadow roll-off. Linearize reads JPEGs as sRGB,
-so the optimizer sees ``srgb^-1(S(srgb(y)))``: :func:`linearized_tone` is that map, and
-``gt/imaging.json`` samples it.
+The tone curve T (``tone_curve``, :data:`TONE_CURVES`) acts on the value the camera records
+(after the EXIF exposure, before linearize divides it out) and gives the encoded JPEG value:
+
+- ``none``: plain sRGB.
+- ``phone``: the sRGB encoding followed by a contrast S-curve ``S(s) = s^p / (s^p + (1 - s)^p)``
+  (p = ``tone_contrast``; p = 1 is plain sRGB), flat (slope 0) at both ends for p > 1 like a
+  phone's highlight/shadow roll-off (the curve the optimizer's tone term was designed on).
+- ``gamma22``: ``y^(1/2.2)``, a pure power law (white at y = 1).
+- ``filmic``: Hable's filmic curve (Uncharted 2) ``f(2 y) / f(2 w)``, w = :data:`FILMIC_WHITE`,
+  then sRGB: a toe and a long shoulder, white only at y = 2 (highlights above 1 keep detail).
+- ``table``: a monotone table over exposure stops as a phone's ISP tabulates it
+  (:data:`TONE_TABLE`, linear in the stops between entries, white at y = 2^0.5).
+- ``toe_shoulder``: ``(1 + m) y^a / (y^a + m)`` (a = 1.3, m = 0.15, :data:`TOE_SHOULDER`): a
+  toe that crushes the shadows (slope 0 at 0) and a shoulder up to white at y = 1.
+
+Only ``none`` and ``phone`` are shaped like the optimizer's model (a curve in the sRGB-encoded
+domain with white at 1); the others test that the model recovers curves it does not share.
+Linearize reads JPEGs as sRGB, so the optimizer sees ``srgb^-1(T(y))`` (divided by the EXIF
+exposure): :func:`linearized_tone` is that map, and ``gt/imaging.json`` samples it.
 """
 
 from __future__ import annotations
@@ -37,7 +51,24 @@ import numpy as np
 from recon.io.atomic import atomic_path
 from recon.io.images import linear_to_srgb, srgb_to_linear
 
-TONE_CURVES = ("none", "phone")
+TONE_CURVES = ("none", "phone", "gamma22", "filmic", "table", "toe_shoulder")
+FILMIC_WHITE = 2.0
+"""``filmic``: the linear value the curve maps to white (the encoded 1)."""
+TONE_TABLE = ((-10.0, 0.0), (-8.0, 0.01), (-7.0, 0.025), (-6.0, 0.05), (-5.0, 0.09), (-4.0, 0.15),
+              (-3.0, 0.24), (-2.5, 0.30), (-2.0, 0.37), (-1.5, 0.46), (-1.0, 0.58), (-0.5, 0.73), (0.0, 0.88),
+              (0.5, 1.0))
+"""``table``: (stops, encoded value) of a phone-like curve, log2 of the recorded linear value; below
+the first entry the curve goes linearly to 0 at y = 0."""
+TOE_SHOULDER = (1.3, 0.15)
+"""``toe_shoulder``: (a, m) of ``(1 + m) y^a / (y^a + m)``."""
+TONE_FORMULAS = {
+    "none": "srgb(y)",
+    "phone": "S(srgb(y)), S(s) = s^p / (s^p + (1 - s)^p)",
+    "gamma22": "min(y, 1)^(1/2.2)",
+    "filmic": "srgb(f(2 y) / f(2 w)), f Hable's filmic operator, w = 2 (white)",
+    "table": "linear interpolation in log2(y) of the table 'table' (stops, encoded)",
+    "toe_shoulder": "min(1, (1 + m) y^a / (y^a + m)), a = 1.3, m = 0.15",
+}
 
 
 def falloff_map(width: int, height: int, k1: float, k2: float) -> np.ndarray:
@@ -68,13 +99,43 @@ def s_curve(s: np.ndarray, p: float) -> np.ndarray:
     return a / np.maximum(a + b, 1e-300)
 
 
-def tone_encode(y: np.ndarray, curve: str, p: float) -> np.ndarray:
-    """Linear ``y`` -> encoded [0, 1]: sRGB, then the S-curve for ``curve="phone"``."""
-    s = linear_to_srgb(np.asarray(y, dtype=np.float32)).astype(np.float64)
-    return s_curve(s, p) if curve == "phone" else s
+def _hable(x: np.ndarray) -> np.ndarray:
+    """Hable's filmic operator (A..F = 0.15, 0.50, 0.10, 0.20, 0.02, 0.30)."""
+    a, b, c, d, e, f = 0.15, 0.50, 0.10, 0.20, 0.02, 0.30
+    return (x * (a * x + c * b) + d * e) / (x * (a * x + b) + d * f) - e / f
 
 
-def linearized_tone(y: np.ndarray, curve: str, p: float) -> np.ndarray:
+def tone_encode(y: np.ndarray, curve: str, p: float = 1.4) -> np.ndarray:
+    """Linear ``y`` (what the camera records) -> encoded value in [0, 1] by the tone curve
+    ``curve`` (:data:`TONE_CURVES`, the module docstring); ``p``: the ``phone`` S-curve's exponent."""
+    y = np.asarray(y)
+    if curve in ("none", "phone"):
+        s = linear_to_srgb(y.astype(np.float32)).astype(np.float64)
+        return s_curve(s, p) if curve == "phone" else s
+    x = np.clip(np.nan_to_num(y.astype(np.float64)), 0.0, None)
+    if curve == "gamma22":
+        return np.minimum(x, 1.0) ** (1 / 2.2)
+    if curve == "filmic":
+        lin = _hable(2.0 * np.minimum(x, FILMIC_WHITE)) / _hable(2.0 * FILMIC_WHITE)
+        return linear_to_srgb(np.clip(lin, 0.0, 1.0)).astype(np.float64)
+    if curve == "table":
+        stops, enc = (np.array(v, np.float64) for v in zip(*TONE_TABLE, strict=True))
+        y0 = 2.0 ** stops[0]
+        u = np.log2(np.maximum(x, y0))
+        return np.where(x < y0, x / y0 * enc[0], np.interp(u, stops, enc))
+    if curve == "toe_shoulder":
+        a, m = TOE_SHOULDER
+        xa = x ** a
+        return np.minimum((1.0 + m) * xa / (xa + m), 1.0)
+    raise ValueError(f"tone curve {curve!r}: choose one of {TONE_CURVES}")
+
+
+def tone_white(curve: str) -> float:
+    """The smallest recorded linear value the curve maps to white (encoded 1)."""
+    return {"filmic": FILMIC_WHITE, "table": 2.0 ** TONE_TABLE[-1][0]}.get(curve, 1.0)
+
+
+def linearized_tone(y: np.ndarray, curve: str, p: float = 1.4) -> np.ndarray:
     """What linearize returns for a linear value ``y`` (before quantization): srgb^-1(T(y))."""
     return srgb_to_linear(tone_encode(y, curve, p).astype(np.float32)).astype(np.float64)
 
@@ -172,11 +233,13 @@ def imaging_record(settings, cams, views: list[ViewImaging], exposures: list[dic
                     "k1": float(s.falloff[0]), "k2": float(s.falloff[1]),
                     "dng_gainmap": bool(getattr(s, "falloff_gainmap", False))},
         "tone_curve": {"name": s.tone_curve, "contrast": float(s.tone_contrast),
-                       "formula": "S(srgb(y)), S(s) = s^p / (s^p + (1 - s)^p)" if s.tone_curve == "phone"
-                       else "srgb(y)" if s.format in ("png8", "png16", "jpg") else "identity",
+                       "formula": TONE_FORMULAS[s.tone_curve] if s.format == "jpg"
+                       else "srgb(y)" if s.format in ("png8", "png16") else "identity",
                        "linear_in": xs.tolist(),
                        "linearized_out": linearized_tone(xs, s.tone_curve, s.tone_contrast).tolist()
-                       if s.format == "jpg" else None},
+                       if s.format == "jpg" else None,
+                       **({"table": [list(r) for r in TONE_TABLE]} if s.tone_curve == "table" else {}),
+                       **({"white": tone_white(s.tone_curve)} if s.format == "jpg" else {})},
         "views": [{"image": c.image, "exposure_gain": v.gain, "white_balance": list(v.wb), **e}
                   for c, v, e in zip(cams.frames, views, exposures, strict=True)],
     }

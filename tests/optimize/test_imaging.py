@@ -318,7 +318,7 @@ def test_imaging_settings_validation():
 def _tone_error(p, params, scale: float = 1.0):
     """Max |srgb(h_fit(x)) - srgb(h_true(scale x))| over the linear values the object's pixels take
     (1st to 99th percentile of the training targets, mapped back through the true curve)."""
-    from recon.optimize.imaging import apply_tone, srgb_encode
+    from recon.optimize.imaging import srgb_encode
     from recon.synth.imaging import linearized_tone
 
     tc = p["gt"]["tone_curve"]
@@ -327,7 +327,8 @@ def _tone_error(p, params, scale: float = 1.0):
     t = p["train"].images.numpy()[p["train"].masks > 0.99].reshape(-1)
     lo, hi = np.interp(np.percentile(t, [1, 99]), truth, xs)
     x = torch.tensor(np.linspace(lo, hi, 200), dtype=torch.float32)
-    fitted = apply_tone(x, params.tone_raw.detach())
+    with torch.no_grad():
+        fitted = params.tone(x)
     tr = torch.tensor(np.interp(np.clip(x.numpy() * scale, 0.0, 1.0), xs, truth), dtype=torch.float32)
     return float((srgb_encode(fitted) - srgb_encode(tr)).abs().max()), (float(lo), float(hi))
 
@@ -393,7 +394,17 @@ def test_loop_imaging_applies_the_terms_of_the_selection():
     got.sum().backward()
     assert p.log_gain.grad is not None and p.falloff_k.grad is not None and p.tone_raw.grad is not None
     assert {id(t) for g in loop.opt.param_groups for t in g["params"]} == {id(p.log_gain), id(p.falloff_k),
-                                                                           id(p.tone_raw)}
+                                                                           id(p.tone_raw), id(p.tone_log_gain)}
+    # the training views' recorded exposures: the curve acts before linearize divided them out
+    e = np.array([1.0, 0.8, 1.0, 1.0, 1.25], np.float32)
+    withe = LoopImaging(lr=0.01, exposure_prior=0.25, exposure=e)
+    withe.adopt(p, {"chosen": ["exposure", "falloff", "tone"]})
+    with torch.no_grad():
+        lin = img * p.gains()[idx][:, None, None, None] * falloff(r2, p.falloff_k)[None, :, :, None]
+        want_e = apply_tone(lin, p.tone_raw, p.tone_log_gain, torch.tensor(e[idx]).reshape(-1, 1, 1, 1))
+        assert torch.allclose(withe.apply(img, idx), want_e)
+        assert not torch.allclose(want_e, got)  # view 4 at 1.25 of the reference exposure
+        assert torch.allclose(withe.apply(img, idx, gains=p.gains()[idx]), got)  # other views: exposure 1
 
 
 def test_loop_imaging_shared_with_the_control_run():
