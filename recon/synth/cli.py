@@ -74,6 +74,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="write the top-level cameras.json")
     p.add_argument("--no-cameras", dest="write_cameras", action="store_false",
                    help="leave the top-level cameras.json out (the pipeline runs SfM)")
+    p.add_argument("--state-light", dest="state_light", action="store_true", default=None,
+                   help="state the flash's intensity (cameras.json light.intensity, capture.yaml "
+                        "light_intensity), as a calibrated flash would; by default the pipeline estimates it")
     p.add_argument("--masks", dest="write_masks", action="store_true", default=None)
     p.add_argument("--no-masks", dest="write_masks", action="store_false")
     p.add_argument("--gt-linear", dest="write_gt_linear", action="store_true", default=None)
@@ -89,9 +92,6 @@ def settings_from_args(args: argparse.Namespace) -> SynthSettings:
     changes = {k: v for k, v in vars(args).items() if k in fields and v is not None}
     if "width" in changes and "height" not in changes:
         changes["height"] = int(round(changes["width"] * 3 / 4 / 2)) * 2
-    p.add_argument("--state-light", dest="state_light", action="store_true", default=None,
-                   help="state the flash's intensity (cameras.json light.intensity, capture.yaml "
-                        "light_intensity), as a calibrated flash would; by default the pipeline estimates it")
     return dataclasses.replace(base, **changes)
 
 
