@@ -179,14 +179,15 @@ def pack_atlas(v_pos: np.ndarray, t_pos_idx: np.ndarray, texture_size: int, padd
             if max(w, h) <= T and pages == 1:
                 fitted = True
                 break
-            if charts * _min_texels_per_chart(padding) > 0.8 * T * T:
+            if T_max > T and charts * _min_texels_per_chart(padding) > 0.8 * T * T:
+                # only where the map may grow: at a fixed size (the optimize stage's maps) xatlas
+                # still fits more charts than this bound (18-20 charts with 2-texel padding at 32^2)
                 log.debug("%d charts with %d-texel padding cannot fit a %d-texel map at any density", charts,
                           padding, T)
                 break  # no density helps: the padding alone fills the map
-            if pages > 1:  # the charts need about `pages` maps: shrink their area as much
-                shrink = min(0.85, 0.95 / np.sqrt(pages))
-            else:
-                shrink = (T / max(w, h) if max(w, h) > T else 1.0) * 0.97
+            # the shrink of the first packing rule (an atlas on a second page: 0.85; one shrunk to fit
+            # T: 0.97): a larger step left the optimize stage's maps a quarter filled
+            shrink = (T / max(w, h) if max(w, h) > T else 1.0) * (0.97 if pages == 1 else 0.85)
             tpu = float(atlas.texels_per_unit) * shrink
             log.debug("atlas %dx%d on %d page(s) does not fit one %d-texel page: packing again at %.2f "
                       "texels per unit", w, h, pages, T, tpu)
