@@ -34,9 +34,10 @@ from recon.export.gltf import write_glb
 from recon.export.usd import write_usd
 from recon.io.atomic import atomic_dir
 from recon.io.cameras import load_cameras
-from recon.io.images import ImageError, linear_to_srgb, read_texture_map, write_png
+from recon.io.images import ImageError, linear_to_srgb, read_mask, read_texture_map, write_png
 from recon.io.mesh import Mesh, MeshError, read_obj
 from recon.marker import MarkerBoard, MarkerError, marker_scale_from_dirs
+from recon.optimize.radiometry import mask_coverage
 from recon.support import PlaneError, plane_if_found
 
 log = logging.getLogger(__name__)
@@ -86,7 +87,7 @@ class ExportSettings:
     min_mask_coverage : float
         With the masks and cameras given: the asset's silhouettes must cover at least this
         fraction of the masks (mean over views), or nothing is exported (a collapsed or
-        misplaced surface is not an asset). 0 = no check.
+        misplaced surface is not an asset; a collapse covers a few %). 0 = no check.
 
     An object standing on a table (``plane.json``, :mod:`recon.support`): whatever ``up`` says,
     the plane's normal becomes +Y, the plane y = 0 (the object's base stands on the ground)
@@ -98,7 +99,7 @@ class ExportSettings:
     meters_per_unit: float = 1.0
     object_height_m: float = 0.0
     marker_square_m: float = 0.0
-    min_mask_coverage: float = 0.5
+    min_mask_coverage: float = 0.3
 
     def __post_init__(self):
         if not (0.0 <= self.min_mask_coverage < 1.0):
@@ -310,10 +311,6 @@ def check_covers_masks(mesh, cameras_json, masks_dir, min_covered: float, mesh_o
     """The mesh's silhouettes against the masks (:func:`recon.optimize.radiometry.mask_coverage`,
     at longest side ``size``); ExportError when they cover less than ``min_covered`` of them."""
     import cv2
-
-    from recon.io.cameras import load_cameras
-    from recon.io.images import read_mask
-    from recon.optimize.radiometry import mask_coverage
 
     cams, masks = [], []
     for cam in load_cameras(cameras_json):

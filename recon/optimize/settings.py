@@ -211,7 +211,7 @@ class OptimizeSettings:
     use_normal_edge: bool = True
     use_material_priors: bool = True
     light_scale: str = "auto"
-    collapse_min_covered: float = 0.5
+    collapse_min_covered: float = 0.3
     collapse_min_area: float = 0.1
     init_diffuse: float = 0.3
     init_specular: float = 0.1

@@ -210,7 +210,7 @@ def test_a_capture_built_to_collapse_stops(capture, tmp_path):
     c = mesh.v_pos.mean(axis=0)
     write_obj(tmp_path / "shrunk.obj", Mesh(c + 0.05 * (mesh.v_pos - c), mesh.t_pos_idx, mesh.v_tex, mesh.t_tex_idx))
     with pytest.raises(ExportError, match=r"shrunk.obj: the optimized surface covers only \d+ % of the masks in "
-                                          r"\S*masks \(need 50 %\)"):
+                                          r"\S*masks \(need 30 %\)"):
         export_asset(tmp_path / "shrunk.obj", *maps, tmp_path / "export2", ExportSettings(),
                      cameras_json=root / "cameras.json", masks_dir=root / "masks")
     assert not (tmp_path / "export2").exists()
