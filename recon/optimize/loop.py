@@ -56,8 +56,8 @@ from recon.optimize.guard import SurfaceGuard, self_intersecting_faces
 from recon.optimize.largesteps import AdamUniform, LargeSteps
 from recon.optimize.gbuffer import build_gbuffer
 from recon.optimize.imaging import (ImagingModel, ImagingParams, ImagingProblem, ImagingSettings, LoopImaging,
-                                    capture_is_ldr, heldout_tiles_under, material_scorer_under, refit_under,
-                                    run_imaging_selection,
+                                    capture_is_ldr, heldout_tiles_under, material_scorer_under, recorded_exposures,
+                                    refit_under, run_imaging_selection, view_exposures,
                                     select_for_loop)
 from recon.optimize.material import compare, heldout_error, model_from_settings, select_material
 from recon.optimize.tracks import TrackTerm
@@ -126,6 +126,7 @@ class _Run:
     ldr: bool | None = None  # the photos were JPEG/PNG (the tone curve is tried)
     light_scale: LightScale | None = None  # where ``light`` came from; the initial diffuse albedo
     area_init: float = 0.0  # the initial mesh's area (the collapse check)
+    exposure: dict | None = None  # stem -> the recorded (EXIF) exposure linearize divided out (the tone curve's domain)
 
     def lr_geometry(self, factor: float = 1.0) -> float:
         """Adam's geometry rate: ``lr_geometry`` is a fraction of the bounding box per step."""
@@ -525,7 +526,8 @@ def optimize_capture(
     light = light_scale.intensity
 
     base = _Run(settings, tuple(stages), views, heldout, bbox_scale, weights, tone_scale, light, ckpt_dir, fp,
-                plane=plane, light_scale=light_scale, area_init=float(init.area()))
+                plane=plane, light_scale=light_scale, area_init=float(init.area()),
+                exposure=recorded_exposures(images))
     if settings.imaging_loop != "off":
         if heldout is None:
             log.warning("imaging_loop: %s needs held-out views (at least 6 views); the loop renders the ideal "
@@ -549,10 +551,13 @@ def optimize_capture(
         # same up to there and the refined run takes the control's choice: the held-out test then
         # compares cameras, not two draws of the imaging selection
         prior = ImagingSettings().exposure_prior
-        control = LoopImaging(settings.imaging_loop_lr, prior)
+        e = view_exposures(views.cameras, base.exposure)  # the training views' (None: all 1)
+        e = None if e is None else e.numpy()
+        control = LoopImaging(settings.imaging_loop_lr, prior, exposure=e)
         shared = control if mode == "select" and camera_start > int(settings.imaging_loop_stage) else None
         runs = [dataclasses.replace(r, imaging=control if r.cameras is None else
-                                    LoopImaging(settings.imaging_loop_lr, prior, shared_from=shared)) for r in runs]
+                                    LoopImaging(settings.imaging_loop_lr, prior, shared_from=shared, exposure=e))
+                for r in runs]
     done = [_execute(run, init, progress, callback) for run in runs]
 
     # ---- the cameras: held-out poses aligned, the refinement selected ----
@@ -627,7 +632,7 @@ def optimize_capture(
         if loop_imaging and settings.select_material_under_imaging:
             scorer = material_scorer_under(run.imaging.params, final, st.covered, train_vs, held_vs, light,
                                            tone_scale, s_mat, spp=int(settings.select_spp),
-                                           seed=int(settings.seed) + 29)
+                                           seed=int(settings.seed) + 29, exposure=run.exposure)
         log.info("material model selection on %d held-out views%s", len(heldout),
                  "" if scorer is None else " under the loop's imaging terms")
         fit, selection = select_material(
@@ -642,7 +647,8 @@ def optimize_capture(
     if loop_imaging and not settings.select_imaging and scorer is None:
         t0 = time.perf_counter()
         refit = refit_under(run.imaging.params, model, final, final_maps, st.covered, train_vs, light, tone_scale,
-                            settings.imaging_selection_settings(), spp=int(settings.select_spp), seed=int(settings.seed) + 29)
+                            settings.imaging_selection_settings(), spp=int(settings.select_spp), seed=int(settings.seed) + 29,
+                            exposure=run.exposure)
         final_maps = refit.material.maps
         timer.add("material", time.perf_counter() - t0)
         log.info("maps refitted under the loop's imaging terms (%s): %.1f s", ", ".join(run.imaging.params.model.terms)
@@ -758,12 +764,13 @@ def align_heldout(run: _Run, st: _Stage) -> dict:
         maps = _map_values(settings, st.maps)
     mesh = Mesh(st.mesh.v_pos.copy(), st.mesh.t_pos_idx, st.mesh.v_tex, st.mesh.t_tex_idx)
     return align_views(mesh, maps, vs, at_size, settings, run.light, run.tone_scale, run.weights, run.imaging,
-                       scene_extent(run.views.cameras), run.bbox_scale)
+                       scene_extent(run.views.cameras), run.bbox_scale, exposure=run.exposure)
 
 
 def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], settings: OptimizeSettings, light: float,
                 tone_scale: float, weights: dict, imaging: LoopImaging | None, scene_size: float,
-                object_size: float | None = None, tracks: tuple[TrackTerm, list[Camera]] | None = None) -> dict:
+                object_size: float | None = None, tracks: tuple[TrackTerm, list[Camera]] | None = None,
+                exposure: dict | None = None) -> dict:
     """:func:`align_heldout` of views ``vs`` (starting from ``cameras``, at the size of ``vs``)
     to a fixed model: ``mesh`` and its map values (``diffuse``, ``specular``, ``roughness``
     tensors), rendered under ``imaging`` (the loop's imaging terms, if it has chosen any; None:
@@ -772,7 +779,8 @@ def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], sett
     whatever each chose. ``scene_size``: the translation unit of the camera prior (the training
     cameras' extent). ``tracks``: SfM's tracks of these views and the views' cameras at the
     photos' size, reprojected through the aligned cameras as a second term (weight
-    ``weights["tracks"]``; :mod:`recon.optimize.tracks`)."""
+    ``weights["tracks"]``; :mod:`recon.optimize.tracks`). ``exposure``: stem -> recorded exposure
+    (:func:`recon.optimize.imaging.recorded_exposures`), where the tone curve acts."""
     ali = CameraRefinement(cameras, settings.camera_prior(), intrinsics=False, gauge=False, scene_size=scene_size)
     idx = list(range(len(cameras)))
     im_settings = ImagingSettings()
@@ -784,6 +792,7 @@ def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], sett
         own = imaging.params.clone(n_views=len(idx), normalize_gains=False)
         with torch.no_grad():
             own.log_gain.zero_()
+    held_e = view_exposures(vs.cameras, exposure)  # these views' recorded exposures (None: all 1)
     n = int(settings.camera_align_iterations)
     if n > 0:
         renderer = _make_renderer(settings, mesh)
@@ -802,7 +811,7 @@ def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], sett
                                         light, seed=ckpt.render_seed(settings.seed, 1000, it),
                                         camera_table=ali.table(idx, cameras), **lighting)
             if imaging is not None:
-                img = imaging.apply(img, idx, gains=None if own is None else own.gains())
+                img = imaging.apply(img, idx, gains=None if own is None else own.gains(), exposure=held_e)
             loss = objective.render_loss(img, vs.images, vs.weights, settings.tone_map, tone_scale)
             if w:
                 loss = loss + w * ali.prior_loss()
@@ -822,7 +831,7 @@ def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], sett
                               seed=int(settings.seed))
     else:
         gb = build_gbuffer(mesh, list(aligned.cameras), int(settings.select_spp), int(settings.seed))
-        prob = ImagingProblem(gb, aligned, sel.tone_map, tone_scale, sel.tile)
+        prob = ImagingProblem(gb, aligned, sel.tone_map, tone_scale, sel.tile, exposure=exposure)
         params = imaging.params if imaging is not None else ImagingParams(ImagingModel(()), len(idx), 1.0, tone_scale)
         tiles, _ = heldout_tiles_under(maps_np, model_from_settings(maps_np["specular"].shape[2]), params,
                                        prob, light, sel, im_settings)
@@ -1002,7 +1011,7 @@ def _select_loop_imaging(run: _Run, mesh: Mesh, maps: dict, covered: np.ndarray,
         return
     log.info("imaging terms for the loop: selection on stage %d's model (%d held-out views)", si, len(held_vs))
     params, ev = select_for_loop(settings, mesh, maps, model_from_settings(settings.specular_channels), covered,
-                                 train_vs, held_vs, run.light, run.tone_scale, run.ldr)
+                                 train_vs, held_vs, run.light, run.tone_scale, run.ldr, exposure=run.exposure)
     ev["after_stage"] = si
     run.imaging.adopt(params, ev)
     log.info("imaging terms for the loop: %s", ", ".join(ev["chosen"]) or "none (the ideal formation)")
