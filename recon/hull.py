@@ -104,7 +104,7 @@ def votes_needed(seen: np.ndarray, outside_fraction: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class HullFields:
-    """The visual hull's distance fields on a grid (each (R, R, R) float32, world units,
+    """The visual hull's distance fields on a grid (each (R, R, R) float64, world units,
     positive inside) and how many views see each voxel (int16)."""
 
     voted: np.ndarray  # the k-th smallest view distance, k the votes needed (the vote's hull)
@@ -139,12 +139,12 @@ def silhouette_fields(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid,
     Returns
     -------
     :class:`HullFields` with
-    voted : (R, R, R) float32
+    voted : (R, R, R) float64
         Approximate distance to the hull surface in world units, positive inside: per voxel the
         k-th smallest of the views' signed distances to their silhouette cones, k the votes
         needed (k = 1: the minimum, the intersection of the cones). Its zero level set is where
         the k-th view's cone boundary passes, so it is placed to sub-voxel precision too.
-    strict : (R, R, R) float32
+    strict : (R, R, R) float64
         The same with k = 1 (equal to ``voted`` when ``outside_fraction`` is 0).
     seen : (R, R, R) int16
         How many views see each voxel.
@@ -154,7 +154,13 @@ def silhouette_fields(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid,
     """
     if not 0.0 <= outside_fraction < 0.5:
         raise ValueError(f"outside_fraction must be in [0, 0.5), got {outside_fraction}")
-    pts = grid.points().astype(np.float32)
+    # computed in voxel units (index space; distances in voxels): the same float32 arithmetic at
+    # every scale of the capture, which keeps the initial mesh's connectivity scale-invariant
+    # (tests/test_extremes.py); the fields are returned in world units (float64: step x voxels)
+    r0 = np.arange(grid.resolution, dtype=np.float32)
+    ii, jj, kk = np.meshgrid(r0, r0, r0, indexing="ij")
+    pts = np.stack([ii.ravel(), jj.ravel(), kk.ravel()], 1)
+    step = float(grid.step)
     n_views = sum(1 for cam in cams if cam.stem in masks)
     kmax = int(votes_needed(n_views, outside_fraction))
     # the kmax smallest signed distances per voxel, ascending (row 0 = the minimum)
@@ -169,8 +175,10 @@ def silhouette_fields(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid,
             raise HullError(f"mask of {cam.stem} is {mask.shape[::-1]} but its camera is {cam.width}x{cam.height}")
         used += 1
         sd = _signed_distance_px(mask) + np.float32(margin_px)
-        alive = np.flatnonzero(low[-1] > -4 * grid.step)  # outside at any vote: stays outside
-        P = (cam.K @ cam.world_to_camera[:3, :]).astype(np.float32)  # (3, 4) projection
+        alive = np.flatnonzero(low[-1] > -4.0)  # outside at any vote: stays outside
+        Pw = cam.K @ cam.world_to_camera[:3, :]  # (3, 4) projection of world points
+        # of voxel indices (world = origin + step * index), divided by step (homogeneous)
+        P = np.concatenate([Pw[:, :3], ((Pw[:, :3] @ grid.origin + Pw[:, 3]) / step)[:, None]], 1).astype(np.float32)
         h = pts[alive] @ P[:, :3].T + P[:, 3]
         z = h[:, 2]
         front = z > 1e-6
@@ -179,7 +187,7 @@ def silhouette_fields(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid,
         inimg = front & (x >= 0) & (x < cam.width) & (y >= 0) & (y < cam.height)
         sel = np.flatnonzero(inimg)
         f = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
-        d = bilinear(sd, x[sel], y[sel]) * (z[sel] / np.float32(f))
+        d = bilinear(sd, x[sel], y[sel]) * (z[sel] / np.float32(f))  # voxels
         idx = alive[sel]
         for r in range(kmax):  # insert d into the sorted rows
             cur = low[r, idx]
@@ -193,8 +201,8 @@ def silhouette_fields(cams: CameraSet, masks: dict[str, np.ndarray], grid: Grid,
 
     def finish(field):
         field[seen < min_views] = -np.inf
-        field = np.where(np.isfinite(field), field, np.where(field > 0, 4 * grid.step, -4 * grid.step))
-        return field.reshape(r, r, r).astype(np.float32)
+        field = np.where(np.isfinite(field), field, np.where(field > 0, 4.0, -4.0))
+        return field.reshape(r, r, r).astype(np.float64) * step
 
     voted = finish(np.take_along_axis(low, (k - 1)[None, :], axis=0)[0])
     strict = finish(low[0].copy()) if kmax > 1 else voted

@@ -48,7 +48,7 @@ import logging
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -185,11 +185,20 @@ def flatten_base(mesh: Mesh, plane: SupportPlane, tolerance: float) -> tuple[Mes
     return Mesh(v, mesh.t_pos_idx), int(low.sum())
 
 
-def isosurface(field: np.ndarray, grid: Grid) -> Mesh:
-    """Zero level set of ``field`` (positive inside) as a closed mesh with outward normals."""
+FIELD_QUANTUM = 2.0**-20
+"""The field is rounded to this fraction of a voxel before marching cubes: the same capture at
+another scale (its field s times larger, up to float rounding) then gives the same surface bit for
+bit, and the remeshing in voxel units (:func:`run_init_mesh`) the same connectivity."""
+
+
+def isosurface(field: np.ndarray, grid: Grid, space: str = "world") -> Mesh:
+    """Zero level set of ``field`` (positive inside, world units) as a closed mesh with outward
+    normals, in world coordinates or (``space="grid"``) in voxel units (index space)."""
     import open3d as o3d
 
-    pad = np.pad(field.astype(np.float32), 1, constant_values=-abs(float(grid.step)))  # closes the surface
+    step = abs(float(grid.step))
+    q = np.round(np.asarray(field, np.float64) / step / FIELD_QUANTUM) * FIELD_QUANTUM  # voxel units
+    pad = np.pad(q.astype(np.float32), 1, constant_values=-1.0)  # closes the surface
     if not (pad > 0).any():
         raise InitMeshError("the visual hull is empty: the masks and the cameras do not agree "
                             "(check the masks, and that the object lies inside [-1, 1]^3)")
@@ -198,7 +207,9 @@ def isosurface(field: np.ndarray, grid: Grid) -> Mesh:
     f = m.triangle.indices.numpy().astype(np.int64)
     if len(f) == 0:
         raise InitMeshError("marching cubes returned no surface")
-    v = (v - 1.0) * grid.step + grid.origin  # index space (padded) -> world
+    v = v - 1.0  # the padded index space -> the grid's
+    if space == "world":
+        v = v * grid.step + grid.origin
     mesh = Mesh(v, f)
     if mesh.volume() < 0:
         mesh = Mesh(v, f[:, ::-1])
@@ -405,11 +416,24 @@ def hull_bounds(cams: CameraSet, masks: dict[str, np.ndarray], settings: InitMes
     reach the cube's faces); otherwise (given cameras in other units or another frame) a cube
     around the point the cameras look at, grown until the coarse hull fits. Fitting the grid
     to the hull also spends the voxels on the object, not on empty space.
+
+    The coarse hull is the voted one; where that reaches the cube's faces, the strict one (a
+    support the masks show in most views but a few cut, such as a stand leaving the frame: the
+    vote keeps it, and the grid is fitted to the strict hull, which the stage then warns
+    reaches the grid's edge).
     """
     def attempt(center, half):
         grid = Grid.cube(center, half, coarse)
         field, _, _ = hull_field(cams, masks, grid, settings, plane, tight=False)
         inside = field > 0
+        if not inside.any():
+            return None, "empty"
+        if _touches(inside) and settings.outside_fraction > 0:
+            strict = replace(settings, outside_fraction=0.0)
+            inside = hull_field(cams, masks, grid, strict, plane, tight=False)[0] > 0
+            if inside.any() and not _touches(inside):
+                log.info("the voted hull reaches beyond a cube of half size %.3g around %s that holds the strict "
+                         "one: the grid is fitted to the strict hull", half, np.round(center, 3).tolist())
         if not inside.any():
             return None, "empty"
         if _touches(inside):
@@ -497,9 +521,12 @@ def visual_hull_mesh(cams: CameraSet, masks: dict[str, np.ndarray],
     if touches:
         log.warning("the visual hull reaches the edge of the grid (center %s, half size %.3g): the "
                     "object may be cut off (masks including background?)", np.round(center, 3).tolist(), half)
-    raw = largest_component(isosurface(field, grid))
+    raw = largest_component(isosurface(field, grid, space="grid"))
     t2 = time.perf_counter()
+    # remeshed in voxel units: the same decisions at every scale of the capture (FIELD_QUANTUM)
     mesh = remesh(raw, settings.target_faces, settings.remesh_iterations)
+    mesh = Mesh(mesh.v_pos * grid.step + grid.origin, mesh.t_pos_idx)
+    raw = Mesh(raw.v_pos * grid.step + grid.origin, raw.t_pos_idx)
     on_plane = 0
     if plane is not None:
         mesh, on_plane = flatten_base(mesh, plane, 0.5 * grid.step)

@@ -49,21 +49,26 @@ def remesh(v_pos: np.ndarray, t_pos_idx: np.ndarray, edge_length: float, iterati
     """Isotropic remeshing to ``edge_length`` (absolute units): ``(v_pos (V', 3), t_pos_idx (F', 3))``.
 
     Small disconnected pieces (< 1% of the faces) and unreferenced vertices are dropped.
+    Remeshed in units of the edge length around the bounding box's centre, the positions rounded
+    to 2^-16 of it (MeshLab computes in float32, and files round positions): the same surface at
+    any scale gets the same decisions (tests/test_extremes.py).
     """
     import pymeshlab
 
     if not edge_length > 0:
         raise ValueError(f"edge_length must be > 0, got {edge_length}")
+    v = np.asarray(v_pos, dtype=np.float64)
+    c = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    h = float(edge_length)
     ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(np.asarray(v_pos, dtype=np.float64), np.asarray(t_pos_idx, dtype=np.int32)))
-    ms.meshing_isotropic_explicit_remeshing(
-        targetlen=pymeshlab.PureValue(float(edge_length)), iterations=int(iterations)
-    )
+    q = 2.0**-16
+    ms.add_mesh(pymeshlab.Mesh(np.round((v - c) / h / q) * q, np.asarray(t_pos_idx, dtype=np.int32)))
+    ms.meshing_isotropic_explicit_remeshing(targetlen=pymeshlab.PureValue(1.0), iterations=int(iterations))
     n = ms.current_mesh().face_number()
     ms.meshing_remove_connected_component_by_face_number(mincomponentsize=max(1, n // 100))
     ms.meshing_remove_unreferenced_vertices()
     m = ms.current_mesh()
-    return np.asarray(m.vertex_matrix(), dtype=np.float64), np.asarray(m.face_matrix(), dtype=np.int64)
+    return np.asarray(m.vertex_matrix(), dtype=np.float64) * h + c, np.asarray(m.face_matrix(), dtype=np.int64)
 
 
 # ---- UV atlas ----
@@ -73,14 +78,24 @@ def unwrap(v_pos: np.ndarray, t_pos_idx: np.ndarray, texture_size: int, padding:
 
     :func:`recon.uv.pack_atlas` with ``padding`` empty texels between charts in the map itself,
     the first packing aimed at charts filling half the map (one xatlas run, ~4 s per 30k faces,
-    is the cost, so the first attempt should fit). Faces keep their order (checked).
+    is the cost, so the first attempt should fit). Faces keep their order (checked). When the
+    charts do not fit with ``padding`` (many small charts in a small map: 34 charts of a
+    three-view hull at 32^2), the padding is lowered to 1, then 0 (bilinear lookups then blend
+    neighbouring charts' texels at their borders), with a warning.
     """
-    try:
-        v_tex, t_tex_idx, _ = pack_atlas(v_pos, t_pos_idx, texture_size, padding, fill=0.5,
-                                         max_attempts=max_attempts)
-    except UVError as e:
-        raise RemeshError(f"{e} (re-unwrapping the remeshed surface)") from e
-    return Mesh(v_pos, t_pos_idx, v_tex, t_tex_idx)
+    err = None
+    for pad in sorted({int(padding), min(int(padding), 1), 0}, reverse=True):
+        try:
+            v_tex, t_tex_idx, _ = pack_atlas(v_pos, t_pos_idx, texture_size, pad, fill=0.5,
+                                             max_attempts=max_attempts)
+        except UVError as e:
+            err = e
+            continue
+        if pad != int(padding):
+            log.warning("the remeshed surface's charts fit a %dx%d map only with %d-texel padding (asked %d)",
+                        texture_size, texture_size, pad, padding)
+        return Mesh(v_pos, t_pos_idx, v_tex, t_tex_idx)
+    raise RemeshError(f"{err} (re-unwrapping the remeshed surface)") from err
 
 
 def texel_centers_uv(size: int) -> np.ndarray:
