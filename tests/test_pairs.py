@@ -5,7 +5,8 @@ import pytest
 
 from recon import poses as rp
 from recon.poses.features import matcher_kind
-from recon.poses.pairs import ordered_matching_ok, ordered_pairs, retrieval_pairs, vlad
+from recon.poses.pairs import (bridge_pairs, cross_group_pairs, groups, in_capture_order, ordered_matching_ok,
+                               ordered_pairs, retrieval_pairs, similarity, vlad)
 
 
 def test_ordered_pairs_wrap_around_the_ring():
@@ -60,6 +61,50 @@ def test_ordered_matching_check():
     assert not ok and "2 separate groups" in why
 
 
+def test_groups_of_verified_pairs():
+    chain = {(i, i + 1) for i in range(19)}
+    assert groups(20, chain) == [list(range(20))]
+    parts = groups(20, chain - {(6, 7), (13, 14)} | {(2, 15)})  # 0-6 with 14-19, 7-13 apart
+    assert parts == [[0, 1, 2, 3, 4, 5, 6, 14, 15, 16, 17, 18, 19], [7, 8, 9, 10, 11, 12, 13]]
+    assert groups(3, set()) == [[0], [1], [2]]
+    assert in_capture_order(20, chain - {(6, 7)}) and not in_capture_order(20, {(i, i + 2) for i in range(18)})
+
+
+def test_bridge_pairs_join_groups_at_their_ends_and_by_similarity():
+    """A walk of 24 views whose step 7 -> 8 failed (two groups in capture order, 0-7 and 8-23,
+    the ring closing 23 -> 0): the bridges are the views around the failed step (a window of 2
+    on each side) and the groups' most similar cross pairs, never a pair inside a group or one
+    already matched."""
+    chain = {(i, i + 1) for i in range(23)} - {(7, 8)}
+    parts = groups(24, chain)
+    assert [len(g) for g in parts] == [16, 8]
+    sim = np.zeros((24, 24))
+    sim[3, 20] = sim[20, 3] = 0.9  # the other ring at the same azimuth
+    sim[1, 12] = sim[12, 1] = 0.8
+    np.fill_diagonal(sim, -np.inf)
+    matched = {(6, 8), (7, 8)}  # ordered pairs that failed to verify: not proposed again
+    pairs = bridge_pairs(parts, sim, exclude=matched, per_group_pair=2, window=2)
+    ends = {(6, 9), (7, 9)} | {(0, 23), (1, 23), (0, 22), (1, 22)}  # the failed step; the ring's wrap
+    assert pairs == ends | {(3, 20), (1, 12)}
+    label = {i: k for k, g in enumerate(parts) for i in g}
+    assert all(label[i] != label[j] for i, j in pairs)
+    # without a similarity: the ends alone; one group: nothing to bridge
+    assert bridge_pairs(parts, None, exclude=matched, window=2) == ends
+    assert bridge_pairs([list(range(24))], sim) == set()
+    # the last resort: every pair between the groups, none inside one
+    rest = cross_group_pairs(parts, exclude=matched | pairs)
+    assert len(rest) == 16 * 8 - len(matched | pairs) and all(label[i] != label[j] for i, j in rest)
+
+
+def test_similarity_is_the_retrieval_order():
+    descs = _views_of_groups([0, 1, 0, 1, 0, 1])
+    sim = similarity(descs)
+    assert np.all(np.isneginf(np.diag(sim)))
+    assert retrieval_pairs(descs, 2) == retrieval_pairs(descs, 2, sim=sim)
+    assert all(sim[i, j] > sim[i, k] for i in range(6) for j in range(6) for k in range(6)
+               if i != j and i != k and i % 2 == j % 2 and i % 2 != k % 2)
+
+
 def test_auto_matcher_choice():
     s = rp.PoseSettings()
     assert matcher_kind(s, 32) == "exhaustive"  # the demo: every pair is cheap insurance
@@ -69,6 +114,8 @@ def test_auto_matcher_choice():
     assert matcher_kind(rp.PoseSettings(matcher="ordered"), 10) == "ordered"
     with pytest.raises(ValueError, match="ordered_neighbors"):
         rp.PoseSettings(ordered_neighbors=0)
+    with pytest.raises(ValueError, match="bridge_window"):
+        rp.PoseSettings(bridge_window=0)
 
 
 @pytest.fixture(scope="module")

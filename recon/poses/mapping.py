@@ -37,9 +37,37 @@ def intrinsics_ok(rec, shape, f_prior: float | None = None) -> bool:
     return bool(0.2 < ratio < 8.0 and np.all(extra < 0.5) and prior_ok)
 
 
-def silhouette_consistency(rec, masks: dict[str, np.ndarray], up: int = 1) -> float | None:
-    """Fraction of (sparse point, registered view) pairs whose projection lands inside the
-    view's mask, over projections inside the image; None without masks or points.
+def object_points(rec, masks: dict[str, np.ndarray], up: int = 1) -> dict[int, bool]:
+    """Per sparse point (id -> bool): is it a point of the object, i.e. does every one of its
+    observations in views with a mask (at least two) fall inside that mask?
+
+    This is the test of the points' own features, independent of the cameras: a point of the
+    table or of the background is seen outside the object's silhouette in its views (and where a
+    mask holds some of the lit table, the table's points still leave it in some view), while a
+    point on the object is seen inside in all of them, in a right model or a wrong one alike.
+    ``up``: the model is on images enlarged by this factor."""
+    out = {}
+    for pid in rec.point3D_ids():
+        inside = 0
+        ok = True
+        for el in rec.point3D(pid).track.elements:
+            im = rec.images[el.image_id]
+            m = masks.get(Path(im.name).stem)
+            if m is None:
+                continue
+            x, y = np.floor(np.asarray(im.points2D[el.point2D_idx].xy) / up).astype(np.int64)
+            if not (0 <= y < m.shape[0] and 0 <= x < m.shape[1] and m[y, x]):
+                ok = False
+                break
+            inside += 1
+        out[int(pid)] = ok and inside >= 2
+    return out
+
+
+def silhouette_consistency(rec, masks: dict[str, np.ndarray], up: int = 1, keep: dict[int, bool] | None = None
+                           ) -> float | None:
+    """Fraction of (object point, registered view) pairs whose projection lands inside the
+    view's mask, over projections inside the image; None without masks or object points.
 
     Every point of the object projects inside the object's silhouette in every view, seen or
     occluded, so a right model scores near 1 whatever its track lengths. A model that is wrong
@@ -47,10 +75,22 @@ def silhouette_consistency(rec, masks: dict[str, np.ndarray], up: int = 1) -> fl
     rotations 50-140 degrees wrong) still reprojects its points onto their own features but
     not into the other views' silhouettes: on the demo capture right models scored 0.97-0.98,
     wrong ones 0.59-0.61. ``up``: the model is on images enlarged by this factor.
-    """
+
+    Only the object's points count (:func:`object_points`): a point of the table projects
+    outside the object's silhouette in most views however right the cameras are, so counting
+    every point rated right models of tabletop captures below the 0.9 threshold (0.86-0.87 on
+    an 80-view phone capture: all 8 mapping trials ran) in proportion to the table's share of
+    the points. ``keep`` (point id -> bool) narrows the points further (e.g. to those above the
+    support plane)."""
     if not masks or rec.num_points3D() == 0:
         return None
-    xyz = np.array([rec.point3D(p).xyz for p in rec.point3D_ids()]).reshape(-1, 3)
+    selected = object_points(rec, masks, up)
+    if keep is not None:
+        selected = {pid: ok and keep.get(pid, False) for pid, ok in selected.items()}
+    ids = [pid for pid, ok in selected.items() if ok]
+    if not ids:
+        return None
+    xyz = np.array([rec.point3D(p).xyz for p in ids]).reshape(-1, 3)
     total = inside = 0
     for i in rec.reg_image_ids():
         im = rec.images[i]
@@ -65,9 +105,9 @@ def silhouette_consistency(rec, masks: dict[str, np.ndarray], up: int = 1) -> fl
         uv = np.asarray(rec.cameras[im.camera_id].img_from_cam(pc)).reshape(-1, 2) / up
         ok = np.all(np.isfinite(uv), axis=1)
         x, y = np.floor(uv[ok, 0]).astype(np.int64), np.floor(uv[ok, 1]).astype(np.int64)
-        keep = (x >= 0) & (x < m.shape[1]) & (y >= 0) & (y < m.shape[0])
-        total += int(keep.sum())
-        inside += int(m[y[keep], x[keep]].sum())
+        keep_px = (x >= 0) & (x < m.shape[1]) & (y >= 0) & (y < m.shape[0])
+        total += int(keep_px.sum())
+        inside += int(m[y[keep_px], x[keep_px]].sum())
     return inside / total if total else None
 
 
@@ -89,10 +129,14 @@ def mapper_sequence(settings: PoseSettings, has_prior: bool, n: int | None = Non
 
 
 def relative_rotations_agree(a, b) -> float | None:
-    """Largest angle (degrees) between the two models' rotations of their common views relative to
-    a common reference view (``R_i R_ref^T``: free of the similarity gauge, so no alignment is
-    needed; a mirrored or folded model differs by tens of degrees); None with fewer than 3
-    common views. ``a``, ``b``: pycolmap reconstructions."""
+    """Largest angle (degrees) between the two models' rotations of their common views once the
+    rotation between their frames is taken out (``R_a,i ~ R_b,i Q``, Q the best rotation over
+    all common views: the gauge; a mirrored or folded model differs by tens of degrees); None
+    with fewer than 3 common views. ``a``, ``b``: pycolmap reconstructions.
+
+    Q from every view, not from one reference view (``R_i R_ref^T``): that one's own error
+    entered every difference, so a weakly placed reference doubled them (the sparse skull
+    photos: 0.99 degrees against a reference seen from below, 0.6 with Q)."""
     def rotations(rec):
         return {rec.images[i].name: np.asarray(rec.images[i].cam_from_world().rotation.matrix())
                 for i in rec.reg_image_ids()}
@@ -101,12 +145,21 @@ def relative_rotations_agree(a, b) -> float | None:
     common = sorted(set(ra) & set(rb))
     if len(common) < 3:
         return None
-    ref = common[0]
-    angles = []
-    for name in common[1:]:
-        d = (ra[name] @ ra[ref].T) @ (rb[name] @ rb[ref].T).T
-        angles.append(np.degrees(np.arccos(np.clip((np.trace(d) - 1.0) / 2.0, -1.0, 1.0))))
+    u, _, vt = np.linalg.svd(sum(rb[n].T @ ra[n] for n in common))
+    q = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    angles = [np.degrees(np.arccos(np.clip((np.trace(ra[n] @ (rb[n] @ q).T) - 1.0) / 2.0, -1.0, 1.0)))
+              for n in common]
     return float(np.max(angles))
+
+
+def _partners(a, b) -> bool:
+    """May trial ``b`` (full: registering accept_fraction of the views) be accepted on the
+    agreement of trial ``a``? Different mappers, and when ``a`` is not full, of the other family
+    (global against incremental, held intrinsics or not)."""
+    family = {"global": "global"}
+    if a[0] == b[0]:
+        return False
+    return a[2] or family.get(a[0], "incremental") != family.get(b[0], "incremental")
 
 
 def map_views(db: Path, images: Path, sparse_root: Path, settings: PoseSettings, n_views: int, shape,
@@ -117,7 +170,7 @@ def map_views(db: Path, images: Path, sparse_root: Path, settings: PoseSettings,
 
     best = None
     trials = []
-    full = []  # (mapper, model) of sane trials registering accept_fraction of the views
+    partners = []  # (mapper, model, full, best-tuple) of sane trials holding min_registered_fraction of the views
     # up to twice the trials while no model is both plausible and consistent with the masks
     for trial, kind in enumerate(mapper_sequence(settings, f_prior is not None, 2 * settings.mapping_trials)):
         if trial >= settings.mapping_trials and best is not None and best[0][0] and best[0][1]:
@@ -171,27 +224,45 @@ def map_views(db: Path, images: Path, sparse_root: Path, settings: PoseSettings,
             best = (score, models[0], models, trial, weak)
         if sane and consistent and n_reg >= settings.accept_fraction * n_views:
             break
-        if sane and n_reg >= settings.accept_fraction * n_views and not consistent:
-            # masks that disagree with every model (the masks stage's masks of an object on a
-            # table hold some of the lit table: a right model scored 0.87 on an 80-view tabletop
-            # capture, and all 8 trials ran): two mappers of different kinds finding the same
-            # cameras is the evidence the masks could not give. The largest difference, not the
-            # mean: a global trial there placed 1 of 80 views 86 degrees off (median 0.04)
-            agree = None
-            for prev_kind, prev in full:
-                if prev_kind != kind:
-                    agree = relative_rotations_agree(prev, models[0])
+        if not sane or n_reg < settings.min_registered_fraction * n_views:
+            continue
+        # masks that disagree with every model (the masks stage's masks of an object on a table
+        # hold some of the lit table: a right model scored 0.87 on an 80-view tabletop capture,
+        # and all 8 trials ran; flash-falloff masks miss an object's shadowed side: the sparse
+        # skull photos' right models scored 0.87-0.88): two mappers of different kinds finding
+        # the same cameras is the evidence the masks could not give. The largest difference,
+        # not the mean: a global trial there placed 1 of 80 views 86 degrees off (median 0.04).
+        # The partner may hold fewer views if it is of the other family (global against
+        # incremental: independent methods), as long as it holds min_registered_fraction of
+        # them (the skull: incremental 32/33 views, global 21 of them).
+        this = (kind, models[0], n_reg >= settings.accept_fraction * n_views, (score, models[0], models, trial, weak))
+        accepted = None
+        if this[2] and not consistent:
+            for prev in partners:
+                if _partners(prev, this):
+                    agree = relative_rotations_agree(prev[1], models[0])
+                    trials[-1]["agrees_with_other_mapper_deg"] = agree
                     if agree is not None and agree < settings.agree_deg:
+                        accepted = (this, prev, agree)
                         break
-            trials[-1]["agrees_with_other_mapper_deg"] = agree
-            if agree is not None and agree < settings.agree_deg:
-                log.info("mapping: %s and an earlier trial of the other kind agree (largest relative rotation "
-                         "difference %.3f degrees): accepted although the masks disagree", kind, agree)
-                # keep this model, not the best-scoring one: a third trial may score a little
-                # higher on the masks with a view misplaced (seen: a global trial, 1 view 86 deg off)
-                best = (score, models[0], models, trial, weak)
-                break
-            full.append((kind, models[0]))
+        if accepted is None:
+            for prev in partners:
+                if prev[2] and not prev[3][0][1] and _partners(this, prev):
+                    agree = relative_rotations_agree(prev[1], models[0])
+                    trials[-1]["agrees_with_other_mapper_deg"] = agree
+                    if agree is not None and agree < settings.agree_deg:
+                        accepted = (prev, this, agree)
+                        break
+        if accepted is not None:
+            chosen, other, agree = accepted
+            log.info("mapping: %s (%d views) and a trial of %s (%d views) agree (largest relative rotation difference "
+                     "%.3f degrees): accepted although the masks disagree", chosen[0], chosen[1].num_reg_images(),
+                     other[0], other[1].num_reg_images(), agree)
+            # keep this model, not the best-scoring one: a third trial may score a little
+            # higher on the masks with a view misplaced (seen: a global trial, 1 view 86 deg off)
+            best = chosen[3]
+            break
+        partners.append(this)
     if best is None:
         return None, [], trials, None, {}
     return best[1], best[2], trials, best[3], best[4]
@@ -270,7 +341,7 @@ def anchored_views(rec, min_points: int) -> tuple[set[int], dict[int, int]]:
     return best, {i: tied_to(i, best - {i}) for i in ids}
 
 
-def refine(rec, settings: PoseSettings, shape, f_prior: float | None = None):
+def refine(rec, settings: PoseSettings, shape, f_prior: float | None = None, prior_sigma: float | None = None):
     """Final bundle adjustment with a robust (Cauchy) loss; returns (reconstruction, info).
 
     Wrong matches that survived verification (repeated texture, highlights) then pull much
@@ -334,7 +405,7 @@ def refine(rec, settings: PoseSettings, shape, f_prior: float | None = None):
                     "camera", info.get("rejected_free"))
     name, chosen, e = candidates[0]
     if f_prior is not None and settings.focal_refine != "free":
-        info["focal"] = focal_with_prior(chosen, settings, f_prior)
+        info["focal"] = focal_with_prior(chosen, settings, f_prior, prior_sigma)
         c = next(iter(chosen.cameras.values()))
         c.params = np.where(np.isin(np.arange(len(c.params)), list(c.focal_length_idxs())),
                             info["focal"]["focal_px"], np.asarray(c.params, dtype=float))
@@ -389,7 +460,7 @@ def focal_sigma(rec, settings: PoseSettings, step: float = 0.01) -> float | None
     return sigma if np.isfinite(sigma) else None
 
 
-def focal_with_prior(rec, settings: PoseSettings, f_prior: float) -> dict:
+def focal_with_prior(rec, settings: PoseSettings, f_prior: float, prior_sigma: float | None = None) -> dict:
     """The focal length to hold in the final adjustment of ``rec`` given a prior (EXIF).
 
     ``fixed``: the prior. ``auto``: the adjustment's estimate and the prior weighted by the
@@ -404,17 +475,19 @@ def focal_with_prior(rec, settings: PoseSettings, f_prior: float) -> dict:
     JPEGs (0.89 %): 1.9-3.8 sigma, always short (docs/camera_refine.md), hence
     ``focal_sigma_scale`` 2. A prior more than 5 combined standard
     deviations from the estimate contradicts the photos and is not used. Without an estimate
-    of the variance (the cost did not rise), the prior.
+    of the variance (the cost did not rise), the prior. ``prior_sigma``: the prior's relative
+    standard deviation (default ``focal_prior_sigma``; :func:`recon.poses.inputs.prior_sigma`).
     """
+    s_prior = settings.focal_prior_sigma if prior_sigma is None else float(prior_sigma)
     f_ba = float(next(iter(rec.cameras.values())).mean_focal_length())
-    out = {"mode": settings.focal_refine, "prior_px": float(f_prior), "prior_sigma": settings.focal_prior_sigma,
+    out = {"mode": settings.focal_refine, "prior_px": float(f_prior), "prior_sigma": s_prior,
            "adjusted_px": f_ba, "adjusted_sigma": None}
     f = float(f_prior)
     if settings.focal_refine == "auto":
         sigma = focal_sigma(rec, settings)
         out["adjusted_sigma"] = sigma
         if sigma is not None:
-            s_ba, s_prior = settings.focal_sigma_scale * sigma, settings.focal_prior_sigma
+            s_ba = settings.focal_sigma_scale * sigma
             z = abs(f_ba / f_prior - 1.0) / float(np.hypot(s_ba, s_prior))
             out["disagreement_sigma"] = z
             if z > 5.0:  # the photos contradict the prior (a digital zoom, a crop, a wrong tag)
@@ -425,7 +498,7 @@ def focal_with_prior(rec, settings: PoseSettings, f_prior: float) -> dict:
                 f = (f_ba / s_ba**2 + f_prior / s_prior**2) / (1.0 / s_ba**2 + 1.0 / s_prior**2)
     out["focal_px"] = f
     log.info("focal length: %.2f px (prior %.2f px +- %.1f%%, adjusted %.2f px +- %s; %s)", f, f_prior,
-             100 * settings.focal_prior_sigma, f_ba,
+             100 * s_prior, f_ba,
              "?" if out["adjusted_sigma"] is None else f"{100 * out['adjusted_sigma']:.2f}%", settings.focal_refine)
     return out
 

@@ -16,8 +16,12 @@ azimuths. The ``ordered`` matcher matches
 
 That is about n (k + m) pairs instead of n^2 / 2. :func:`ordered_matching_ok` then checks the
 assumption on the verified pairs: if the views' consecutive pairs mostly failed to verify (the
-photos are not in capture order) or the verified pairs leave the views in separate groups, the
-caller matches the remaining pairs exhaustively (COLMAP skips pairs already matched).
+photos are not in capture order), the caller matches the remaining pairs exhaustively (COLMAP
+skips pairs already matched). If the verified pairs leave the views in separate groups
+(:func:`groups`; sparse captures whose steps of 10-15 degrees sometimes fail to match), the
+caller first matches the pairs most likely to join them (:func:`bridge_pairs`: the groups'
+ends in capture order and their most similar cross pairs), and only if groups remain, every
+pair between the groups (:func:`cross_group_pairs`), never the pairs inside a group again.
 """
 
 from __future__ import annotations
@@ -101,16 +105,23 @@ def vlad(descriptors: Sequence[np.ndarray], words: int = 64, sample: int = 256, 
     return out
 
 
+def similarity(descriptors: Sequence[np.ndarray], seed: int = 0) -> np.ndarray:
+    """(n, n) cosine similarity of the views' VLAD vectors (:func:`vlad`), -inf on the diagonal."""
+    g = vlad(descriptors, seed=seed)
+    sim = (g @ g.T).astype(np.float64)
+    np.fill_diagonal(sim, -np.inf)
+    return sim
+
+
 def retrieval_pairs(descriptors: Sequence[np.ndarray], neighbors: int, exclude: Iterable[tuple[int, int]] = (),
-                    seed: int = 0) -> set[tuple[int, int]]:
+                    seed: int = 0, sim: np.ndarray | None = None) -> set[tuple[int, int]]:
     """Each view paired with its ``neighbors`` most similar other views (VLAD cosine similarity,
-    :func:`vlad`), not counting pairs in ``exclude`` (already matched); pairs (i, j), i < j."""
-    n = len(descriptors)
+    :func:`similarity`, or ``sim`` when given), not counting pairs in ``exclude`` (already
+    matched); pairs (i, j), i < j."""
+    n = len(descriptors) if sim is None else len(sim)
     if n < 2 or neighbors < 1:
         return set()
-    g = vlad(descriptors, seed=seed)
-    sim = g @ g.T
-    np.fill_diagonal(sim, -np.inf)
+    sim = similarity(descriptors, seed) if sim is None else np.array(sim, dtype=np.float64)
     for i, j in exclude:
         sim[i, j] = sim[j, i] = -np.inf
     pairs = set()
@@ -122,15 +133,9 @@ def retrieval_pairs(descriptors: Sequence[np.ndarray], neighbors: int, exclude: 
     return pairs
 
 
-def ordered_matching_ok(n: int, verified: Iterable[tuple[int, int]], min_consecutive: float = 0.5) -> tuple[bool, str]:
-    """Did the ``ordered`` pairs do? ``verified``: the pairs (i, j) whose two-view geometry
-    verified. False (with the reason) when fewer than ``min_consecutive`` of the consecutive
-    pairs (i, i + 1) verified (the files are not in capture order) or the verified pairs leave
-    the views in more than one group."""
-    verified = {(min(a, b), max(a, b)) for a, b in verified}
-    if n < 2:
-        return True, "one view"
-    consecutive = sum((i, i + 1) in verified for i in range(n - 1)) / (n - 1)
+def groups(n: int, verified: Iterable[tuple[int, int]]) -> list[list[int]]:
+    """The views 0..n-1 in groups connected by ``verified`` pairs, largest first (ties: by
+    their first view)."""
     parent = list(range(n))
 
     def find(a):
@@ -141,10 +146,93 @@ def ordered_matching_ok(n: int, verified: Iterable[tuple[int, int]], min_consecu
 
     for a, b in verified:
         parent[find(a)] = find(b)
-    groups = len({find(i) for i in range(n)})
+    out: dict[int, list[int]] = {}
+    for i in range(n):
+        out.setdefault(find(i), []).append(i)
+    return sorted(out.values(), key=lambda g: (-len(g), g[0]))
+
+
+def bridge_pairs(parts: Sequence[Sequence[int]], sim: np.ndarray | None, exclude: Iterable[tuple[int, int]] = (),
+                 per_group_pair: int = 10, window: int = 3) -> set[tuple[int, int]]:
+    """Pairs between the separate groups ``parts`` of an ordered matching (:func:`groups`) that
+    are likely to join them, not counting ``exclude`` (already matched):
+
+    - the groups' ends in capture order: where view i and view i + 1 (wrapping around) lie in
+      different groups, the ``window`` views up to i with the ``window`` views from i + 1 that
+      lie in another group (the walk went on, but the match across that step failed: its
+      neighbours one or two steps further often share enough);
+    - for every two groups, their ``per_group_pair`` most similar cross pairs by the global
+      descriptor ``sim`` (:func:`similarity`; the other rings, a walk that came back).
+
+    About (boundaries x window^2 + groups^2 / 2 x per_group_pair) pairs: tens, where matching
+    the rest exhaustively costs n^2 / 2."""
+    n = sum(len(g) for g in parts)
+    label = np.empty(n, np.int64)
+    for k, g in enumerate(parts):
+        label[list(g)] = k
+    exclude = {(min(a, b), max(a, b)) for a, b in exclude}
+    pairs = set()
+    for i in range(n):
+        j = (i + 1) % n
+        if n < 2 or label[i] == label[j]:
+            continue
+        before = [(i - d) % n for d in range(window)]
+        after = [(j + d) % n for d in range(window)]
+        for a in before:
+            for b in after:
+                if a != b and label[a] != label[b]:
+                    pairs.add((min(a, b), max(a, b)))
+    if sim is not None and per_group_pair > 0:
+        for ka in range(len(parts)):
+            for kb in range(ka + 1, len(parts)):
+                a, b = np.asarray(parts[ka]), np.asarray(parts[kb])
+                block = np.asarray(sim, dtype=np.float64)[np.ix_(a, b)]
+                order = np.argsort(-block, axis=None, kind="stable")
+                taken = 0
+                for flat in order:
+                    i, j = int(a[flat // len(b)]), int(b[flat % len(b)])
+                    pair = (min(i, j), max(i, j))
+                    if pair in exclude or pair in pairs or not np.isfinite(block.flat[flat]):
+                        continue
+                    pairs.add(pair)
+                    taken += 1
+                    if taken >= per_group_pair:
+                        break
+    return pairs - exclude
+
+
+def cross_group_pairs(parts: Sequence[Sequence[int]], exclude: Iterable[tuple[int, int]] = ()) -> set[tuple[int, int]]:
+    """Every pair of views in different groups, not counting ``exclude``: what joins the groups
+    if anything does, without the pairs inside a group (the ordered pairs already tie it)."""
+    exclude = {(min(a, b), max(a, b)) for a, b in exclude}
+    pairs = set()
+    for ka in range(len(parts)):
+        for kb in range(ka + 1, len(parts)):
+            for i in parts[ka]:
+                for j in parts[kb]:
+                    pairs.add((min(i, j), max(i, j)))
+    return pairs - exclude
+
+
+def ordered_matching_ok(n: int, verified: Iterable[tuple[int, int]], min_consecutive: float = 0.5) -> tuple[bool, str]:
+    """Did the ``ordered`` pairs do? ``verified``: the pairs (i, j) whose two-view geometry
+    verified. False (with the reason) when fewer than ``min_consecutive`` of the consecutive
+    pairs (i, i + 1) verified (the files are not in capture order) or the verified pairs leave
+    the views in more than one group."""
+    verified = {(min(a, b), max(a, b)) for a, b in verified}
+    if n < 2:
+        return True, "one view"
+    consecutive = sum((i, i + 1) in verified for i in range(n - 1)) / (n - 1)
+    count = len(groups(n, verified))
     if consecutive < min_consecutive:
         return False, (f"only {consecutive:.0%} of the consecutive views verified a match: the files are not in "
                        "capture order")
-    if groups > 1:
-        return False, f"the verified pairs leave the views in {groups} separate groups"
+    if count > 1:
+        return False, f"the verified pairs leave the views in {count} separate groups"
     return True, f"{consecutive:.0%} of the consecutive views verified, one group"
+
+
+def in_capture_order(n: int, verified: Iterable[tuple[int, int]], min_consecutive: float = 0.5) -> bool:
+    """Did at least ``min_consecutive`` of the consecutive views (i, i + 1) verify a match?"""
+    verified = {(min(a, b), max(a, b)) for a, b in verified}
+    return n < 2 or sum((i, i + 1) in verified for i in range(n - 1)) / (n - 1) >= min_consecutive

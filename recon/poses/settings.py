@@ -25,10 +25,16 @@ class PoseSettings:
     # small photos (sift_upsample_factor would enlarge them) whose first SfM pass leaves more than
     # 1 - accept_fraction of the views out: SfM once more on enlarged images, kept if it registers more
     sift_upsample_retry: bool = False  # measured both ways: config/README.md
-    peak_threshold: float = 0.001  # COLMAP's default 0.0067 finds too few on smooth objects
+    # SIFT's peak threshold; 0: by the SIFT images' long side (features.peak_threshold): 0.001 on small
+    # images (COLMAP's 0.0067 finds too few on smooth objects there), 0.0067 from peak_threshold_size px
+    # (real photos: the features below it are mostly noise that does not match; docs/sfm_speed.md)
+    peak_threshold: float = 0.0
+    peak_threshold_size: int = 1000
     highlight_factor: float = 4.0  # no features where luminance > this x the object's median (0: off)
     affine_features: bool = False  # affine-covariant SIFT + domain-size pooling (wide baselines)
-    guided_matching: bool = False
+    # re-match each verified pair along its epipolar geometry: the sparse skull photos' weak pairs
+    # gained the inliers that registered 32 instead of 20 of 33 views (docs/sfm_speed.md)
+    guided_matching: bool = True
     max_ratio: float = 0.8  # SIFT ratio test
     camera_model: str = "SIMPLE_RADIAL"  # shared camera; PINHOLE-like models skip distortion
     # ---- matching ----
@@ -36,6 +42,12 @@ class PoseSettings:
     exhaustive_max_views: int = 40  # auto: exhaustive up to this many views, ordered beyond
     ordered_neighbors: int = 5  # ordered: each view with its next k in capture order (wrapping around)
     retrieval_neighbors: int = 5  # ordered: and with its m most similar views (loop closure)
+    # ordered, views left in separate groups: rounds of bridging pairs (the groups' ends in capture
+    # order, bridge_window views on each side; each two groups' bridge_pairs most similar cross
+    # pairs), then every pair between the groups left (never the exhaustive n^2 / 2)
+    bridge_rounds: int = 2
+    bridge_pairs: int = 10
+    bridge_window: int = 3
     sequential_overlap: int = 15
     min_num_inliers: int = 12  # verified two-view geometry
     verify_max_error: float = 0.0  # RANSAC epipolar threshold, pixels; 0: 0.4% of the long side in [1, 4]
@@ -45,7 +57,9 @@ class PoseSettings:
     abs_pose_min_num_inliers: int = 15
     mapping_trials: int = 4  # retries (other mapper, other seed) while too many views are left out
     accept_fraction: float = 0.95  # a trial registering this fraction of the views ends the retries
-    agree_deg: float = 1.0  # ... or, when the masks disagree, two mappers' rotations all within this (0: off)
+    # ... or, when the masks disagree, two mappers' rotations all within this, in degrees (0: off): wrong
+    # (mirrored, folded) models differ by tens; right ones of sparse photos by up to 0.9 on their weakest views
+    agree_deg: float = 2.0
     max_mapping_seconds: float = 600.0  # per incremental trial
     min_registered: int = 3
     min_view_points: int = 15  # views posed from fewer 3D points are dropped (unreliable)
@@ -60,7 +74,10 @@ class PoseSettings:
     # a known focal length in pixels of the photos in images/ (their full size), e.g. from a
     # calibration: the prior instead of EXIF's (weight: focal_prior_sigma; fixed holds it)
     focal_px: float | None = None
-    focal_prior_sigma: float = 0.01  # the prior's relative standard deviation (auto)
+    focal_prior_sigma: float = 0.01  # the prior's relative standard deviation (auto): focal_px, a 35 mm equivalent
+    # ... of EXIF FocalLength x FocalPlaneXResolution (DSLRs without a 35 mm equivalent): a few percent
+    # (the Canon EOS Rebel T3's 10,221 px at 4272 px wide; SfM found 4.6 % less)
+    focal_plane_prior_sigma: float = 0.05
     focal_sigma_scale: float = 2.0  # the adjustment's standard deviation times this (auto; see mapping)
     seed: int = 0
     num_threads: int = -1
@@ -78,6 +95,10 @@ class PoseSettings:
             raise ValueError(f"matcher must be auto, exhaustive, ordered or sequential, got {self.matcher!r}")
         if self.ordered_neighbors < 1 or self.retrieval_neighbors < 0:
             raise ValueError("ordered_neighbors must be >= 1 and retrieval_neighbors >= 0")
+        if self.peak_threshold < 0:
+            raise ValueError(f"peak_threshold must be >= 0 (0: by image size), got {self.peak_threshold}")
+        if self.bridge_rounds < 0 or self.bridge_pairs < 0 or self.bridge_window < 1:
+            raise ValueError("bridge_rounds and bridge_pairs must be >= 0 and bridge_window >= 1")
         if self.sift_encoding not in ("log", "srgb"):
             raise ValueError(f"sift_encoding must be log or srgb, got {self.sift_encoding!r}")
         if self.mapper not in ("auto", "incremental", "incremental_fixed", "global"):
@@ -89,8 +110,10 @@ class PoseSettings:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise ValueError(f"focal_px must be a positive number of pixels (the photos' focal length), got {value!r}")
             object.__setattr__(self, "focal_px", float(value))
-        if not (isinstance(self.focal_prior_sigma, (int, float)) and 0 < self.focal_prior_sigma < 1):
-            raise ValueError(f"focal_prior_sigma must be in (0, 1), got {self.focal_prior_sigma!r}")
+        for key in ("focal_prior_sigma", "focal_plane_prior_sigma"):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and 0 < value < 1):
+                raise ValueError(f"{key} must be in (0, 1), got {value!r}")
         if not (isinstance(self.focal_sigma_scale, (int, float)) and 0 < self.focal_sigma_scale < 1e6):
             raise ValueError(f"focal_sigma_scale must be positive, got {self.focal_sigma_scale!r}")
         if self.min_registered < 3:

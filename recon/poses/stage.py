@@ -18,7 +18,7 @@ from recon.io.cameras import Camera, CameraError, CameraSet, load_cameras, save_
 from recon.io.images import read_exr
 from recon.poses.features import extract_and_match, sift_upsample_factor, write_sift_images
 from recon.poses.frame import object_frame, points_in_masks, rotate_cameras
-from recon.poses.inputs import image_names, linear_stems, prior_focal, read_masks
+from recon.poses.inputs import image_names, linear_stems, prior_focal, prior_sigma, read_masks
 from recon.poses.mapping import map_views, refine, rescale_model, silhouette_consistency, unregistered_reasons
 from recon.poses.settings import PoseError, PoseSettings
 from recon.poses.undistort import pinhole_camera, undistort_maps, undistort_view
@@ -230,6 +230,10 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     light_intensity = settings.light_intensity if light_known else DEFAULT_LIGHT_INTENSITY
 
     f_prior, f_source = prior_focal(settings, linear_json, stems)
+    if f_prior:
+        log.info("focal length prior %.1f px +- %.0f%% from %s", f_prior, 100 * prior_sigma(settings, f_source), f_source)
+    else:
+        log.info("no focal length prior (no usable EXIF focal length, no poses.focal_px)")
     masks = read_masks(masks_dir, stems)
     work = tmp / "work"
     rec, models, trials, trial, weak, up, shape, db, matcher = _features_and_mapping(
@@ -284,7 +288,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     shutil.rmtree(work / "mapping", ignore_errors=True)
     refinement = {}
     if settings.refine:
-        rec, refinement = refine(rec, settings, shape_sift, f_sift)
+        rec, refinement = refine(rec, settings, shape_sift, f_sift, prior_sigma(settings, f_source))
     if up > 1:
         rescale_model(rec, shape, up)
     (tmp / "sparse").mkdir()
@@ -342,13 +346,14 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     timings["support_plane_s"] = time.perf_counter() - t0
 
     mre = float(rec.compute_mean_reprojection_error())
-    sil = silhouette_consistency(rec, masks)
+    above = _points_on_the_object(rec, sim, tmp / "plane.json") if support.get("found") else None
+    sil = silhouette_consistency(rec, masks, keep=above)
     if sil is not None and sil < settings.min_silhouette_consistency:
-        log.warning("only %.0f%% of the sparse points project inside the other views' masks (a right model: "
-                    "> %.0f%%): the cameras and the masks disagree; either the masks miss parts of the object "
-                    "(check results/<capture>/masks) or SfM found a wrong (e.g. mirrored) solution; more "
-                    "texture on the object or a textured support helps SfM", 100 * sil,
-                    100 * settings.min_silhouette_consistency)
+        log.warning("only %.0f%% of the object's sparse points (those seen inside the masks%s) project inside "
+                    "the other views' masks (a right model: > %.0f%%): the cameras and the masks disagree; either "
+                    "the masks miss parts of the object (check results/<capture>/masks) or SfM found a wrong (e.g. "
+                    "mirrored) solution; more texture on the object or a textured support helps SfM", 100 * sil,
+                    ", above the table" if above is not None else "", 100 * settings.min_silhouette_consistency)
     diag = {
         "source": "sfm",
         "views": n,
@@ -359,9 +364,12 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
         "points3D": int(rec.num_points3D()),
         "points3D_in_masks": int(in_mask.sum()),
         "silhouette_consistency": sil,
+        "silhouette_points": ("the object's points: seen inside the masks in every view that sees them"
+                              + (", above the support plane, inside the object's box" if above is not None else "")),
         "camera": {"model": colmap_cam.model_name, "params": list(map(float, colmap_cam.params)),
                    "width": colmap_cam.width, "height": colmap_cam.height,
-                   "focal_prior_px": f_prior, "focal_prior_source": f_source},
+                   "focal_prior_px": f_prior, "focal_prior_source": f_source,
+                   "focal_prior_sigma": prior_sigma(settings, f_source) if f_prior else None},
         "pinhole": {"width": pinhole.width, "height": pinhole.height, "K": K.tolist()},
         "matcher": matcher,
         "matching": matching,
@@ -381,6 +389,31 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
              len(registered), n, mre, rec.num_points3D(), in_mask.sum(),
              ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))
     return diag
+
+
+def _points_on_the_object(rec, sim: Similarity, plane_json: Path, margin: float = 0.01) -> dict[int, bool] | None:
+    """Per sparse point of ``rec`` (COLMAP's frame; ``sim`` maps it to the object frame of
+    ``plane_json``): does it lie above the support plane by more than ``margin`` of the object's
+    size, and inside the object's box (``object_bbox``, grown by 10 %) where the file has one?
+    The table's points are then never counted as the object's. None without ``plane_json``."""
+    if not plane_json.is_file():
+        return None
+    data = json.loads(plane_json.read_text())
+    plane = load_plane(plane_json)
+    ids = [int(p) for p in rec.point3D_ids()]
+    if not ids:
+        return {}
+    xyz = sim.apply(np.array([rec.point3D(p).xyz for p in ids]).reshape(-1, 3))
+    box = data.get("object_bbox")
+    size = 2.0
+    ok = np.ones(len(ids), bool)
+    if box is not None:
+        lo, hi = np.asarray(box["lo"], float), np.asarray(box["hi"], float)
+        size = float(np.max(hi - lo))
+        grow = 0.1 * (hi - lo)
+        ok &= np.all((xyz >= lo - grow) & (xyz <= hi + grow), axis=1)
+    ok &= plane.height(xyz) > margin * size
+    return dict(zip(ids, ok.tolist(), strict=True))
 
 
 def _support_plane_masks(tmp: Path, masks_dir: Path | None) -> dict:
