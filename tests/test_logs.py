@@ -131,7 +131,8 @@ def test_a_failing_stage_in_a_real_run(repo_root, tmp_path):
     assert log == res / "black" / "logs" / f"{rule}.log"
     last = log.read_text().rstrip("\n").splitlines()[-1]
     message = re.search(rf"ERROR recon\.stage: {rule} failed: (.+)$", last).group(1)
-    assert "0000.png" in message  # names the file
+    # names what to fix: the photos (all black: the check names their folder and the flash)
+    assert str(tmp_path / "caps" / "black" / "images") in message and "black" in message
     assert f"recon {rule}: error: {message}" in text and f"(log: {log})" in text
     assert "Traceback" not in text
     assert "Traceback (most recent call last)" in log.read_text()
