@@ -30,16 +30,14 @@ def test_error_names_the_file(case, sphere_base, tmp_path):
     cap = _capture(case, sphere_base, tmp_path)
     case.edit(cap)
     before = tree_hashes(cap)
-    t0 = time.perf_counter()
     with pytest.raises(CaptureError) as e:
         validate_capture(cap, "draft")
-    seconds = time.perf_counter() - t0
     message = str(e.value)
     assert re.search(case.error, message), message
     assert str(cap / case.names) in message, message
     assert "Traceback" not in message and "numpy" not in message
     assert tree_hashes(cap) == before  # the capture is never changed
-    assert seconds < 10, seconds  # a header-level check (about 0.1 s here), never a stage's work
+    # (no wall-time bound: the check's speed is no test's business on a busy machine, issue 30)
 
 
 @pytest.mark.parametrize("case", WARNINGS, ids=[c.id for c in WARNINGS])
