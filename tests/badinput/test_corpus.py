@@ -8,7 +8,6 @@ from __future__ import annotations
 import logging
 import re
 import shutil
-import time
 
 import pytest
 from badinput_cases import CASES, sphere_capture, tree_hashes
@@ -67,18 +66,16 @@ def test_flash_photos_pass(tmp_path):
 
 
 def test_levels_of_real_flash_photos(shared_data):
-    """The real skull's flash JPEGs (4272 x 2848) are neither black nor white, their EXIF says
-    the flash fired, and reading their levels at 1/8 size is quick."""
+    """The real skull's flash JPEGs (4272 x 2848) are neither black nor white and their EXIF says
+    the flash fired (read at 1/8 size; no wall-time bound, issue 30)."""
     from recon.linearize.metadata import flash_fired, read_meta
     from recon.validate import BLACK_LEVEL, WHITE_FRACTION, photo_levels
 
     photos = sorted((shared_data / "real" / "skull-flash" / "images").glob("*.JPG"))[:6]
-    t0 = time.perf_counter()
     for p in photos:
         top, clipped = photo_levels(p)
         assert top > 10 * BLACK_LEVEL and clipped < WHITE_FRACTION / 10, (p, top, clipped)
         assert flash_fired(read_meta(p)) is True
-    assert (time.perf_counter() - t0) / len(photos) < 1.0
 
 
 def test_photos_without_camera_are_reported_dropped(sphere):
