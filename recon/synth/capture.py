@@ -29,7 +29,11 @@ and the capture also holds ``gt/masks/<stem>.png`` (the object's true silhouette
 ``gt/plane.json`` (the table, :mod:`recon.support`); see :mod:`recon.synth.tabletop`.
 ``scene="tabletop_void"``: the tabletop scene's object (base cut flat) and cameras without the
 table or the backdrop: the same capture in the void, the peer benchmarks compare a tabletop
-capture with (``gt/plane.json`` says where the table would be).
+capture with (``gt/plane.json`` says where the table would be). ``scene="stand"``: no table, the
+object on a thin pole with a round white base in a dim room (cameras as in the tabletop scene);
+``gt/masks`` hold the object alone, ``gt/masks_with_stand`` the object with its stand.
+Variations that make masks hard (object colours like the table's, no texture, a wall, room
+lamps, views cut by the frame) are settings of their own, off by default (VARIATION_FIELDS).
 
 Everything is a function of the settings: the same settings give bit-identical files (except
 for DNG metadata a library may stamp; pidng stamps none).
@@ -56,16 +60,17 @@ from recon.io.mesh import write_obj
 from recon.synth.bake import bake, unwrap
 from recon.synth.materials import MaterialFields
 from recon.support import SupportPlane, save_plane
-from recon.synth.shapes import OBJECT_KINDS, flatten_base, make_object
+from recon.synth.shapes import FLAT_BASE, OBJECT_KINDS, flatten_base, make_object
 from recon.render.mitsuba_bsdf import render_reference
 from recon.synth import imaging as phone
 from recon.synth.sensor import SensorModel, exposure_value
-from recon.synth.tabletop import TabletopScene, add_marker_mat, table_texture, tabletop_cameras
+from recon.synth.tabletop import (TabletopScene, add_marker_mat, closeup_cameras, room_lamps, stand_meshes,
+                                  table_texture, tabletop_cameras, wall_mesh)
 
 log = logging.getLogger(__name__)
 
 FORMATS = ("dng", "exr", "png16", "png8", "jpg")
-SCENES = ("void", "tabletop", "tabletop_void")
+SCENES = ("void", "tabletop", "tabletop_void", "stand")
 TABLETOP_FIELDS = ("scene", "elevation_range", "rings", "distance_jitter", "aim_jitter", "roll_jitter",
                    "table_half_size", "table_texture_size", "background", "background_distance",
                    "base_cut", "marker_square")
@@ -75,6 +80,11 @@ PHONE_FIELDS = ("flash_offset", "ambient", "exposure_jitter", "wb_jitter", "fall
                 "tone_contrast", "jpeg_quality", "falloff_gainmap")
 """Settings of a phone's imaging (:mod:`recon.synth.imaging`); gt/synth.json records them only when
 one differs from its default (so captures made before they existed regenerate bit-identically)."""
+VARIATION_FIELDS = ("palette", "texture_pattern", "wall", "wall_distance", "lamps", "closeups",
+                    "closeup_distance", "stand_height", "stand_base")
+"""Scene variations that make masks hard (object colours like the table's, no texture, a wall and
+lamps in a dim room, views cut by the frame, an object on a stand); recorded in gt/synth.json only
+when one differs from its default, like PHONE_FIELDS."""
 _EXT = {"dng": ".dng", "exr": ".exr", "png16": ".png", "png8": ".png", "jpg": ".jpg"}
 
 
@@ -115,6 +125,11 @@ class SynthSettings:
         I_e of the point light at each camera center.
     write_cameras : bool
         Write the top-level cameras.json (without it the pipeline runs SfM).
+    state_light : bool
+        State the flash's intensity to the pipeline (``light.intensity`` in the top-level
+        cameras.json and ``light_intensity`` in capture.yaml), as a calibrated flash would. Off by
+        default: no user knows that number, so the pipeline estimates it from the photos; the
+        true I_e is in ``gt/cameras.json`` either way.
     write_masks : bool
         Write masks/<stem>.png (pixel coverage > 0.5).
     write_gt_linear : bool
@@ -125,11 +140,6 @@ class SynthSettings:
         Shot and read noise (sensor model for DNG; its equivalent for EXR/PNG).
     mesh_level : int
         Icosphere subdivision level (the torus gets as many faces): 20 * 4**level faces.
-    state_light : bool
-        State the flash's intensity to the pipeline (``light.intensity`` in the top-level
-        cameras.json and ``light_intensity`` in capture.yaml), as a calibrated flash would. Off by
-        default: no user knows that number, so the pipeline estimates it from the photos; the
-        true I_e is in ``gt/cameras.json`` either way.
     texture_size : int
         Size of the square ground-truth maps.
     texture_frequency : float
@@ -191,6 +201,28 @@ class SynthSettings:
     falloff_gainmap : bool
         Phone DNG (``format="dng"``): the DNG carries the falloff's correction as an OpcodeList3
         GainMap (17 x 13 points, 3 planes), as phone DNGs do; linearize applies it.
+    palette : str
+        The object's four diffuse colours (:data:`recon.synth.materials.PALETTES`): ``default``,
+        ``wood`` (the table's colours), ``glaze`` (cream, blue, orange), ``dark``.
+    texture_pattern : bool
+        The albedo's fine pattern (dots and fractal shading); False: plain colour regions (a glaze).
+    wall : float
+        Tabletop/stand: albedo of a wall behind the object (0: none), a vertical plane
+        ``wall_distance`` (x ``distance``) from the object on the -y side, lit by the flash.
+    wall_distance : float
+        Tabletop/stand: the wall's distance from the object's centre, in camera distances.
+    lamps : float
+        Tabletop/stand: two room lamps (point lights fixed in the room, above and to the sides)
+        giving together this fraction of the flash's irradiance at the object.
+    closeups : float
+        Tabletop/stand: this share of the views is taken from ``closeup_distance`` (x the view's
+        distance): the object is cut by the frame's edges there.
+    closeup_distance : float
+        Tabletop/stand: see ``closeups``.
+    stand_height : float
+        Stand scene: length of the thin pole under the object (object units).
+    stand_base : float
+        Stand scene: albedo of the pole's round base (a white disc: 0.8).
     """
 
     object: str = "blob"
@@ -205,6 +237,7 @@ class SynthSettings:
     seed: int = 0
     light_intensity: float = 28.0
     write_cameras: bool = True
+    state_light: bool = False
     write_masks: bool = False
     write_gt_linear: bool = True
     exposure_variation: float = 0.0
@@ -237,7 +270,15 @@ class SynthSettings:
     tone_contrast: float = 1.4
     jpeg_quality: int = 95
     falloff_gainmap: bool = False
-    state_light: bool = False
+    palette: str = "default"
+    texture_pattern: bool = True
+    wall: float = 0.0
+    wall_distance: float = 2.0
+    lamps: float = 0.0
+    closeups: float = 0.0
+    closeup_distance: float = 0.55
+    stand_height: float = 1.2
+    stand_base: float = 0.8
 
     def __post_init__(self):
         object.__setattr__(self, "view_z_range", tuple(float(z) for z in self.view_z_range))
@@ -262,11 +303,29 @@ class SynthSettings:
             raise SynthError(f"table_texture_size={self.table_texture_size}: use 16 to 8192")
         if not 0.0 <= self.background <= 1.0:
             raise SynthError(f"background={self.background}: an albedo in [0, 1] (0: none)")
-        if self.scene == "tabletop" and self.background > 0 and self.background_distance <= self.distance * 1.5:
+        if self.scene in ("tabletop", "stand") and self.background > 0 \
+                and self.background_distance <= self.distance * 1.5:
             raise SynthError(f"background_distance={self.background_distance}: the backdrop must be far "
                              f"behind the cameras (> 1.5 x distance = {1.5 * self.distance})")
         if not 0.0 <= self.base_cut < 0.5:
             raise SynthError(f"base_cut={self.base_cut}: use a fraction of the height in [0, 0.5)")
+        from recon.synth.materials import PALETTES
+
+        if self.palette not in PALETTES:
+            raise SynthError(f"palette={self.palette!r}: choose one of {tuple(PALETTES)}")
+        if not 0.0 <= self.wall <= 1.0 or not 0.0 <= self.stand_base <= 1.0:
+            raise SynthError(f"wall={self.wall}, stand_base={self.stand_base}: albedos in [0, 1]")
+        if self.wall > 0 and not 1.2 <= self.wall_distance <= 20:
+            raise SynthError(f"wall_distance={self.wall_distance}: use 1.2 to 20 camera distances")
+        if not 0.0 <= self.lamps <= 10.0:
+            raise SynthError(f"lamps={self.lamps}: a fraction of the flash irradiance in [0, 10]")
+        if not 0.0 <= self.closeups <= 1.0 or not 0.25 <= self.closeup_distance <= 1.0:
+            raise SynthError(f"closeups={self.closeups} (a share in [0, 1]) and closeup_distance="
+                             f"{self.closeup_distance} (in [0.25, 1])")
+        if (self.wall > 0 or self.lamps > 0 or self.closeups > 0) and self.scene not in ("tabletop", "stand"):
+            raise SynthError("wall, lamps and closeups need scene='tabletop' or 'stand'")
+        if not 0.2 <= self.stand_height <= 5.0:
+            raise SynthError(f"stand_height={self.stand_height}: use 0.2 to 5 object units")
         if self.marker_square < 0:
             raise SynthError(f"marker_square={self.marker_square}: a length >= 0 (0: no mat)")
         if self.object not in OBJECT_KINDS:
@@ -345,6 +404,12 @@ class SynthSettings:
         """Any of the phone's imaging effects switched on (format jpg counts)."""
         d = SynthSettings()
         return self.format == "jpg" or any(getattr(self, k) != getattr(d, k) for k in PHONE_FIELDS)
+
+    @property
+    def variations(self) -> bool:
+        """Any of :data:`VARIATION_FIELDS` differs from its default."""
+        d = SynthSettings()
+        return any(getattr(self, k) != getattr(d, k) for k in VARIATION_FIELDS)
 
 
 PRESETS: dict[str, SynthSettings] = {
@@ -442,17 +507,18 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
     sensor = SensorModel()
     log.info("synth: %s object, level %d, %s scene", s.object, s.mesh_level, s.scene)
     mesh = make_object(s.object, s.mesh_level, s.seed)
-    if tabletop and s.object != "mug":  # the mug stands on its own flat base
+    if tabletop and s.object not in FLAT_BASE:  # the mug (and the turned shapes) stand on their own flat base
         mesh = flatten_base(mesh, s.base_cut)
     mesh = unwrap(mesh, resolution=s.texture_size, padding=3)
     fields = MaterialFields(seed=s.seed, frequency=s.texture_frequency, albedo=s.albedo,
-                            specular=s.specular, roughness=s.roughness)
+                            specular=s.specular, roughness=s.roughness, palette=s.palette,
+                            pattern=s.texture_pattern)
     (diffuse, specular, roughness), _ = bake(mesh, fields.evaluate, s.texture_size, pad=4)
     if s.scale != 1.0:  # the fields were evaluated at unit scale
         mesh = dataclasses.replace(mesh, v_pos=mesh.v_pos * s.scale)
     roughness = np.clip(roughness, R_MIN, 1.0)
     textures = {"diffuse": diffuse, "specular": specular, "roughness": roughness}
-    scene, marker, gt_plane = None, None, None
+    scene, marker, gt_plane, with_stand = None, None, None, None
     if s.scene == "tabletop_void":  # the tabletop object and cameras, rendered alone
         lo, hi = mesh.bbox()
         gt_plane = SupportPlane(np.array([0.0, 0.0, 1.0]), -float(lo[2]))
@@ -467,9 +533,20 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
                       "size": [v * s.scale for v in marker["size"]]}
         lo, hi = mesh.bbox()
         scene = TabletopScene(mesh, textures, float(lo[2]), s.table_half_size * s.scale, table_rgb,
-                              s.background, s.background_distance * s.scale)
+                              s.background, s.background_distance * s.scale,
+                              *_room(s, mesh, float(lo[2]), ()))
         gt_plane = scene.plane
-        cams = tabletop_cameras(s, target=0.5 * (lo + hi) / s.scale)
+        cams = closeup_cameras(tabletop_cameras(s, target=0.5 * (lo + hi) / s.scale), s, 0.5 * (lo + hi) / s.scale)
+    elif s.scene == "stand":  # no table: the object on a pole with a round base, in a dim room
+        lo, hi = mesh.bbox()
+        pole, base = stand_meshes(float(lo[2]), s.stand_height, s.scale)
+        stand = (("pole", pole, {"diffuse": np.array([0.12, 0.08, 0.05]), "specular": 0.04, "roughness": 0.5}),
+                 ("base", base, {"diffuse": np.full(3, s.stand_base), "specular": 0.04, "roughness": 0.4}))
+        z_floor = float(base.v_pos[:, 2].min())
+        scene = TabletopScene(mesh, textures, z_floor, 1.0, None, s.background, s.background_distance * s.scale,
+                              *_room(s, mesh, z_floor, stand))
+        with_stand = _merge([mesh, pole, base])
+        cams = closeup_cameras(tabletop_cameras(s, target=0.5 * (lo + hi) / s.scale), s, 0.5 * (lo + hi) / s.scale)
     else:
         cams = make_cameras(s)
     exposures = view_exposures(s, sensor)
@@ -500,6 +577,9 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
                                    light_position=light_pos, ambient=l_amb)
                 coverage = scene.object_coverage(cam, s.spp, seed=s.seed * 100003 + i)
                 write_mask(tmp / "gt" / "masks" / f"{cam.stem}.png", coverage > 0.5)
+                if with_stand is not None:
+                    cov = scene.object_coverage(cam, s.spp, seed=s.seed * 100003 + i, mesh=with_stand)
+                    write_mask(tmp / "gt" / "masks_with_stand" / f"{cam.stem}.png", cov > 0.5)
             else:
                 rgba = render_reference(mesh, textures, cam, cams.light_intensity, s.spp,
                                         seed=s.seed * 100003 + i, alpha=True, light_position=light_pos,
@@ -573,6 +653,33 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
     return out_dir
 
 
+def _room(s: SynthSettings, mesh, z_floor: float, props: tuple) -> tuple[tuple, tuple]:
+    """``(props, lamps)`` of :class:`recon.synth.tabletop.TabletopScene` for the variations of
+    ``s``: ``props`` plus a wall (``s.wall``), and the room lamps (``s.lamps``)."""
+    lo, hi = mesh.bbox()
+    center = 0.5 * (lo + hi)
+    d = s.distance * s.scale
+    props = tuple(props)
+    if s.wall > 0:
+        dist = s.wall_distance * d
+        props += (("wall", wall_mesh(center, dist, z_floor, 3.0 * dist, 2.5 * dist),
+                   {"diffuse": np.full(3, s.wall), "specular": 0.0, "roughness": 1.0}),)
+    lamps = tuple(room_lamps(center, d, s.lamps, s.light_intensity * s.scale**2)) if s.lamps > 0 else ()
+    return props, lamps
+
+
+def _merge(meshes):
+    """One :class:`recon.io.mesh.Mesh` (positions and faces only) of several."""
+    from recon.io.mesh import Mesh
+
+    v, f, n = [], [], 0
+    for m in meshes:
+        v.append(m.v_pos)
+        f.append(m.t_pos_idx + n)
+        n += len(m.v_pos)
+    return Mesh(np.concatenate(v), np.concatenate(f))
+
+
 def recorded_settings(s: SynthSettings) -> dict:
     """The settings as gt/synth.json records them (a void capture leaves out TABLETOP_FIELDS)."""
     d = dataclasses.asdict(s)
@@ -580,6 +687,8 @@ def recorded_settings(s: SynthSettings) -> dict:
         d = {k: v for k, v in d.items() if k not in TABLETOP_FIELDS}
     if not s.phone_effects:
         d = {k: v for k, v in d.items() if k not in PHONE_FIELDS}
+    if not s.variations:
+        d = {k: v for k, v in d.items() if k not in VARIATION_FIELDS}
     return d
 
 

@@ -7,6 +7,8 @@ Examples:
   python -m recon synth /tmp/phone --preset phone --ambient 0     (a phone's JPEGs, no ambient light)
   python -m recon synth /tmp/mug --scene tabletop --object mug --views 24 --res 256 --format exr
       (the object on a textured table, cameras on hand-held rings above it; gt/masks, gt/plane.json)
+  python -m recon synth /tmp/bell --scene tabletop --object bell --palette glaze --no-pattern --wall 0.5 \
+      --lamps 0.3 --closeups 0.15      (what makes tabletop masks hard: bench/masks.py)
 """
 
 from __future__ import annotations
@@ -54,6 +56,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--table-texture-size", type=int, dest="table_texture_size")
     p.add_argument("--marker-square", type=float, dest="marker_square",
                    help="tabletop: print a ChArUco mat with squares of this side under the object")
+    v = p.add_argument_group("scene variations that make masks hard (each off by default)")
+    v.add_argument("--palette", help="the object's colours: default, wood (the table's), glaze, dark")
+    v.add_argument("--no-pattern", dest="texture_pattern", action="store_false", default=None,
+                   help="no fine albedo pattern (plain colour regions, little texture)")
+    v.add_argument("--wall", type=float, help="tabletop/stand: albedo of a wall behind the object (0: none)")
+    v.add_argument("--wall-distance", type=float, dest="wall_distance", help="the wall's distance, x --distance")
+    v.add_argument("--lamps", type=float, help="tabletop/stand: two room lamps, this fraction of the flash "
+                   "irradiance at the object")
+    v.add_argument("--closeups", type=float, help="tabletop/stand: share of views taken closer (the frame cuts "
+                   "the object)")
+    v.add_argument("--closeup-distance", type=float, dest="closeup_distance", help="their distance, x the view's")
+    v.add_argument("--stand-height", type=float, dest="stand_height", help="stand scene: the pole's length")
+    v.add_argument("--stand-base", type=float, dest="stand_base", help="stand scene: the base's albedo")
     g = p.add_argument_group("a phone's imaging (recon.synth.imaging; each effect off by default)")
     g.add_argument("--flash-offset", type=float, nargs=3, dest="flash_offset", metavar=("X", "Y", "Z"),
                    help="flash position in camera coordinates (object units; x right, y down, z forward)")
@@ -108,7 +123,10 @@ def command_line(args: argparse.Namespace) -> str:
             "background": "--background", "table_texture_size": "--table-texture-size",
             "marker_square": "--marker-square", "ambient": "--ambient", "exposure_jitter": "--exposure-jitter",
             "wb_jitter": "--wb-jitter", "tone_curve": "--tone-curve", "tone_contrast": "--tone-contrast",
-            "jpeg_quality": "--jpeg-quality"}
+            "jpeg_quality": "--jpeg-quality", "palette": "--palette", "wall": "--wall",
+            "wall_distance": "--wall-distance", "lamps": "--lamps", "closeups": "--closeups",
+            "closeup_distance": "--closeup-distance", "stand_height": "--stand-height",
+            "stand_base": "--stand-base"}
     flags = {"write_cameras": "cameras", "write_masks": "masks", "write_gt_linear": "gt-linear",
              "noise": "noise", "falloff_gainmap": "falloff-gainmap", "state_light": "state-light"}
     parts = ["python -m recon synth", str(args.out_dir)]
@@ -121,6 +139,8 @@ def command_line(args: argparse.Namespace) -> str:
                       ("falloff", "--falloff")):
         if getattr(s, key) != getattr(base, key):
             parts += [flag, *map(str, getattr(s, key))]
+    if not s.texture_pattern and base.texture_pattern:
+        parts.append("--no-pattern")
     for key, name in flags.items():
         if getattr(s, key) != getattr(base, key):
             parts.append(f"--{name}" if getattr(s, key) else f"--no-{name}")

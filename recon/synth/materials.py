@@ -26,6 +26,18 @@ DIFFUSE_PALETTE = np.array([
     [0.58, 0.47, 0.12],  # ochre
     [0.52, 0.52, 0.50],  # light grey
 ])
+PALETTES = {
+    "default": DIFFUSE_PALETTE,
+    # the colours of the wooden table (recon.synth.tabletop.table_texture spans dark [0.20, 0.11,
+    # 0.05] to light [0.56, 0.38, 0.21]): an object that a colour model cannot tell from the table
+    "wood": np.array([[0.50, 0.33, 0.17], [0.30, 0.18, 0.08], [0.42, 0.27, 0.13], [0.56, 0.39, 0.22]]),
+    # glazes of a ceramic: cream, blue, orange (close to the table's light wood) and a light cream
+    "glaze": np.array([[0.72, 0.64, 0.48], [0.12, 0.20, 0.42], [0.62, 0.33, 0.11], [0.80, 0.74, 0.60]]),
+    # a dark object: black and dark brown glazes (albedo 2-6 %)
+    "dark": np.array([[0.035, 0.03, 0.028], [0.06, 0.04, 0.025], [0.03, 0.035, 0.04], [0.05, 0.05, 0.05]]),
+}
+"""Four diffuse colours each (the Voronoi cells of :class:`MaterialFields`); ``default`` is the
+generator's palette, the others make objects whose colours a table or a backdrop shares."""
 SPECULAR_LEVELS = np.array([0.03, 0.25, 0.6])
 ROUGHNESS_LEVELS = np.array([0.18, 0.4, 0.75])
 
@@ -42,6 +54,8 @@ class MaterialFields:
     space, dots 0.7-1.4 / frequency across (the object spans about 2 units). At 192 x 144 px,
     frequency 16 gave ~50 verified SIFT matches between views 28 degrees apart.
 
+    ``palette``: a key of :data:`PALETTES` (the four cell colours).
+
     ``albedo``, ``specular``, ``roughness``: when set, that quantity is this constant everywhere
     instead of its field (``albedo`` scales nothing: a grey a_d = albedo, pattern and all gone);
     e.g. ``specular=0`` makes a purely diffuse object, ``roughness=1`` a fully rough one.
@@ -53,6 +67,7 @@ class MaterialFields:
     albedo: float | None = None
     specular: float | None = None
     roughness: float | None = None
+    palette: str = "default"
 
     def _rng(self) -> np.random.Generator:
         return np.random.default_rng(np.random.SeedSequence([int(self.seed), 0x3A7]))
@@ -64,7 +79,7 @@ class MaterialFields:
         d = _unit(p)
         # -- diffuse: Voronoi cells of directions, a permuted palette --
         seeds = _unit(rng.normal(size=(4, 3)))
-        palette = DIFFUSE_PALETTE[rng.permutation(4)]
+        palette = PALETTES[self.palette][rng.permutation(4)]
         cell = np.argmax(d @ seeds.T, axis=1)
         a_d = palette[cell]
         if self.pattern:

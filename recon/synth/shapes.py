@@ -11,6 +11,11 @@ and inside the cube [-0.95, 0.95]^3 (so inside DESIGN's [-1, 1]^3 object frame):
 - ``mug``: a cup with a flat base, an open cavity and a handle (genus 1), standing along +z:
   a concavity that no visual hull carves and a through-hole beside the body; made as the zero
   level set of a signed distance function (marching cubes, then isotropic remeshing).
+- ``bell``, ``vase``, ``bowl``: surfaces of revolution standing along +z on a flat base
+  (:func:`revolve`): a bell (a dome over a waist flaring out to a wide lip at the bottom, a
+  knob on top), a tall vase (a belly, a narrow neck, an open mouth) and a low wide bowl (an
+  open cavity). They cover what tabletop masks find hard: a wide flared base on the table,
+  a tall thin object, a low one.
 
 :func:`flatten_base` cuts an object flat at the bottom so that it can stand on a table
 (tabletop captures, :mod:`recon.synth.tabletop`).
@@ -26,7 +31,9 @@ import numpy as np
 from recon.io.mesh import Mesh
 from recon.synth.noise import fbm
 
-OBJECT_KINDS = ("blob", "torus", "smooth", "mug")
+OBJECT_KINDS = ("blob", "torus", "smooth", "mug", "bell", "vase", "bowl")
+FLAT_BASE = ("mug", "bell", "vase", "bowl")
+"""Objects made standing on a flat base (a tabletop scene does not cut them flat)."""
 EXTENT = 0.95
 """Largest absolute coordinate of a generated object."""
 
@@ -248,10 +255,103 @@ def flatten_base(mesh: Mesh, cut: float) -> Mesh:
     return _fit_extent(Mesh(v, mesh.t_pos_idx))
 
 
+def revolve(profile: np.ndarray, level: int) -> Mesh:
+    """A closed surface of revolution around the z axis from ``profile (K, 2)`` of (radius, z).
+
+    The profile runs from a point on the axis (radius 0) to another point on the axis, with
+    the inside of the solid on its left when read in the (r, z) half plane (e.g. from the
+    bottom centre out along the base, up the outside, back to the axis at the top); its
+    points are resampled by arc length. The mesh has about ``20 * 4**level`` faces, genus 0.
+    """
+    prof = np.asarray(profile, dtype=np.float64)
+    if prof.ndim != 2 or prof.shape[1] != 2 or abs(prof[0, 0]) > 1e-12 or abs(prof[-1, 0]) > 1e-12:
+        raise ValueError("revolve: the profile must run from the axis (r = 0) to the axis")
+    seg = np.linalg.norm(np.diff(prof, axis=0), axis=1)
+    t = np.concatenate([[0.0], np.cumsum(seg)])
+    faces = 20 * 4**level
+    n_theta = max(12, int(round(np.sqrt(faces * np.pi / max(t[-1], 1e-9) * np.max(prof[:, 0]) / 2))))
+    n_prof = max(4, int(round(faces / (2 * n_theta))))
+    s = np.linspace(0.0, t[-1], n_prof + 1)
+    r = np.interp(s, t, prof[:, 0])
+    z = np.interp(s, t, prof[:, 1])
+    theta = 2 * np.pi * np.arange(n_theta) / n_theta
+    rings = r[1:-1]
+    ring_z = z[1:-1]
+    v = [np.array([[0.0, 0.0, z[0]]])]
+    v.append(np.stack([np.outer(rings, np.cos(theta)).ravel(), np.outer(rings, np.sin(theta)).ravel(),
+                       np.repeat(ring_z, n_theta)], 1))
+    v.append(np.array([[0.0, 0.0, z[-1]]]))
+    v = np.concatenate(v)
+    top = len(v) - 1
+    n_rings = len(rings)
+    idx = 1 + np.arange(n_rings * n_theta).reshape(n_rings, n_theta)
+    nxt = np.roll(idx, -1, axis=1)
+    f = [np.stack([np.zeros(n_theta, np.int64), nxt[0], idx[0]], 1)]
+    for k in range(n_rings - 1):
+        a, b, c, d = idx[k], nxt[k], idx[k + 1], nxt[k + 1]
+        f.append(np.stack([a, b, d], 1))
+        f.append(np.stack([a, d, c], 1))
+    f.append(np.stack([idx[-1], nxt[-1], np.full(n_theta, top)], 1))
+    f = np.concatenate(f).astype(np.int64)
+    mesh = Mesh(v, f)
+    if mesh.volume() < 0:
+        mesh = Mesh(v, f[:, ::-1])
+    return mesh
+
+
+def _profile(points, n: int = 24) -> np.ndarray:
+    """A smooth (Catmull-Rom) curve through ``points`` [(r, z), ...], ``n`` samples per span."""
+    p = np.asarray(points, dtype=np.float64)
+    q = np.concatenate([p[:1], p, p[-1:]])
+    out = [p[:1]]
+    u = np.linspace(0, 1, n + 1)[1:, None]
+    for k in range(1, len(q) - 2):
+        p0, p1, p2, p3 = q[k - 1], q[k], q[k + 1], q[k + 2]
+        out.append(0.5 * (2 * p1 + (-p0 + p2) * u + (2 * p0 - 5 * p1 + 4 * p2 - p3) * u**2
+                          + (-p0 + 3 * p1 - 3 * p2 + p3) * u**3))
+    return np.concatenate(out)
+
+
+def bell(level: int = 6, seed: int = 0) -> Mesh:
+    """The ``bell``: a wide flared lip on the base, a waist, a dome and a knob on top."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xBE11]))
+    lip = 1.0 * rng.uniform(0.95, 1.05)
+    waist = 0.62 * rng.uniform(0.95, 1.05)
+    outside = _profile([(lip, 0.0), (lip * 0.97, 0.08), (lip * 0.82, 0.22), (waist, 0.55), (waist * 0.98, 0.95),
+                        (waist * 0.9, 1.2), (waist * 0.62, 1.38), (0.2, 1.46), (0.12, 1.5), (0.13, 1.62),
+                        (0.08, 1.7), (0.0, 1.72)])
+    return _fit_extent(revolve(np.concatenate([[[0.0, 0.0]], outside]), level))
+
+
+def vase(level: int = 6, seed: int = 0) -> Mesh:
+    """The ``vase``: tall (3 x its width), a belly, a narrow neck and an open mouth."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x7A5E]))
+    belly = 0.5 * rng.uniform(0.95, 1.05)
+    outside = _profile([(0.3, 0.0), (belly, 0.45), (belly * 0.95, 0.9), (0.2, 1.6), (0.17, 2.1), (0.27, 2.45),
+                        (0.28, 2.5)])
+    inside = _profile([(0.23, 2.5), (0.13, 2.2), (0.0, 2.05)])
+    return _fit_extent(revolve(np.concatenate([[[0.0, 0.0]], outside, inside]), level))
+
+
+def bowl(level: int = 6, seed: int = 0) -> Mesh:
+    """The ``bowl``: low and wide (about 3 x as wide as tall) with an open cavity."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xB0A1]))
+    rim = 1.0 * rng.uniform(0.95, 1.05)
+    outside = _profile([(0.45, 0.0), (0.5, 0.06), (0.8, 0.25), (rim, 0.55), (rim, 0.62)])
+    inside = _profile([(rim - 0.07, 0.62), (rim - 0.1, 0.52), (0.7, 0.3), (0.3, 0.16), (0.0, 0.14)])
+    return _fit_extent(revolve(np.concatenate([[[0.0, 0.0]], outside, inside]), level))
+
+
 def make_object(kind: str, level: int = 6, seed: int = 0) -> Mesh:
     """One of :data:`OBJECT_KINDS` (no UVs yet)."""
     if kind == "mug":
         return mug(level, seed)
+    if kind == "bell":
+        return bell(level, seed)
+    if kind == "vase":
+        return vase(level, seed)
+    if kind == "bowl":
+        return bowl(level, seed)
     if kind == "blob":
         return blob(level, seed, detail=True)
     if kind == "smooth":

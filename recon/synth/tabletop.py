@@ -22,6 +22,12 @@ brightly as the object itself. The base is never seen. This module makes that sc
   object's center (``aim_jitter``) with a little roll (``roll_jitter`` degrees). None from below.
 - ``gt/masks/<stem>.png``: the object's own silhouette (pixel coverage > 0.5 of the object
   rendered alone; nothing ever stands in front of it).
+
+Variations (each off by default, see :class:`recon.synth.capture.SynthSettings`): a wall behind
+the object (:func:`wall_mesh`), two room lamps fixed in the room (:func:`room_lamps`), views
+taken closer so that the frame cuts the object (:func:`closeup_cameras`), and ``scene="stand"``:
+no table, the object on a thin pole with a round white base (:func:`stand_meshes`) in a dim
+room, like a skull on a display stand.
 """
 
 from __future__ import annotations
@@ -150,18 +156,96 @@ def tabletop_cameras(settings, target=(0.0, 0.0, 0.0)) -> CameraSet:
     return CameraSet(tuple(frames), float(s.light_intensity * s.scale**2))
 
 
+def closeup_cameras(cams: CameraSet, settings, target) -> CameraSet:
+    """``cams`` with a share ``settings.closeups`` of the views (chosen by a seeded draw) moved
+    along their optical axis to ``closeup_distance`` of their distance from ``target`` (their
+    aim and roll kept): the frame cuts the object there."""
+    s = settings
+    n = len(cams)
+    k = int(round(s.closeups * n))
+    if k == 0:
+        return cams
+    rng = np.random.default_rng(np.random.SeedSequence([int(s.seed), 0xC105E]))
+    chosen = set(rng.choice(n, size=k, replace=False).tolist())
+    target = np.asarray(target, dtype=np.float64) * s.scale
+    frames = []
+    for i, cam in enumerate(cams.frames):
+        if i in chosen:
+            c = cam.center
+            axis = cam.camera_to_world[:3, 2]
+            along = float((target - c) @ axis)
+            W = cam.world_to_camera.copy()
+            new_c = c + (1.0 - s.closeup_distance) * along * axis
+            W[:3, 3] = -W[:3, :3] @ new_c
+            cam = Camera(cam.image, cam.width, cam.height, cam.K.copy(), W)
+        frames.append(cam)
+    return CameraSet(tuple(frames), cams.light_intensity)
+
+
+def wall_mesh(center, distance: float, z_floor: float, half_width: float, height: float) -> Mesh:
+    """A vertical rectangle ``distance`` from ``center`` on the -y side, facing +y, from
+    ``z_floor`` up ``height``, ``half_width`` either side (two triangles)."""
+    cx, cy = float(center[0]), float(center[1])
+    y = cy - distance
+    v = np.array([[cx - half_width, y, z_floor], [cx + half_width, y, z_floor],
+                  [cx + half_width, y, z_floor + height], [cx - half_width, y, z_floor + height]])
+    return Mesh(v, np.array([[0, 2, 1], [0, 3, 2]]))
+
+
+def room_lamps(center, distance: float, irradiance_fraction: float, flash_intensity: float) -> list:
+    """Two lamps ``[(position (3,), intensity), ...]`` fixed in the room, above and to the sides of
+    ``center``, giving together ``irradiance_fraction`` of the flash's irradiance at the object
+    (a flash of ``flash_intensity`` at ``distance``)."""
+    c = np.asarray(center, dtype=np.float64)
+    out = []
+    for offset in (np.array([1.3, 0.7, 1.5]), np.array([-1.1, 1.2, 1.1])):
+        pos = c + distance * offset
+        r2 = float(((pos - c) ** 2).sum())
+        out.append((pos, 0.5 * irradiance_fraction * flash_intensity * r2 / distance**2))
+    return out
+
+
+def cylinder_mesh(radius: float, z0: float, z1: float, segments: int = 48) -> Mesh:
+    """A closed cylinder around the z axis from ``z0`` to ``z1`` (caps fanned from their centres)."""
+    t = 2 * np.pi * np.arange(segments) / segments
+    ring = np.stack([radius * np.cos(t), radius * np.sin(t)], 1)
+    v = np.concatenate([np.c_[ring, np.full(segments, z0)], np.c_[ring, np.full(segments, z1)],
+                        [[0.0, 0.0, z0], [0.0, 0.0, z1]]])
+    a = np.arange(segments)
+    b = (a + 1) % segments
+    bottom, top = 2 * segments, 2 * segments + 1
+    f = np.concatenate([np.stack([a, b, b + segments], 1), np.stack([a, b + segments, a + segments], 1),
+                        np.stack([np.full(segments, bottom), b, a], 1),
+                        np.stack([np.full(segments, top), a + segments, b + segments], 1)])
+    return Mesh(v, f)
+
+
+def stand_meshes(z_bottom: float, height: float, scale: float = 1.0) -> tuple[Mesh, Mesh]:
+    """The pole (radius 0.05, from ``height`` below ``z_bottom`` to 0.15 into the object) and its
+    round base (radius 0.6, 0.06 thick) of the stand scene, in object units times ``scale``."""
+    pole = cylinder_mesh(0.05 * scale, z_bottom - height * scale, z_bottom + 0.15 * scale)
+    base = cylinder_mesh(0.6 * scale, z_bottom - (height + 0.06) * scale, z_bottom - height * scale, 96)
+    return pole, base
+
+
 # ---- rendering ----
 class TabletopScene:
     """The object, the table and the backdrop, ready to render views (one Mitsuba scene per view)."""
 
     def __init__(self, mesh: Mesh, textures: dict, plane_z: float, half_size: float,
-                 table_diffuse: np.ndarray, background: float, background_distance: float):
+                 table_diffuse: np.ndarray | None, background: float, background_distance: float,
+                 props: tuple = (), lamps: tuple = ()):
+        """``table_diffuse`` None: no table (the stand scene); ``props``: more ``(name, mesh,
+        textures)`` in the room (a wall, a stand); ``lamps``: ``(position, intensity)`` point
+        lights fixed in the room, rendered in passes of their own and added."""
         self.mesh = mesh
         self.textures = textures
         self.plane_z = float(plane_z)
-        self.table = table_mesh(plane_z, half_size)
+        self.table = table_mesh(plane_z, half_size) if table_diffuse is not None else None
         self.table_textures = {"diffuse": table_diffuse, "specular": TABLE_SPECULAR,
                                "roughness": TABLE_ROUGHNESS}
+        self.props = tuple(props)
+        self.lamps = tuple(lamps)
         self.background = float(background)
         self.background_distance = float(background_distance)
         lo, hi = mesh.bbox()
@@ -179,8 +263,13 @@ class TabletopScene:
 
         mi = register()
         d = scene_dict(self.mesh, self.textures, cam, light_intensity, spp, light_position=light_position)
-        d["table"] = mitsuba_mesh(self.table, "table", bsdf=mi.load_dict(bsdf_dict(self.table_textures)))
-        corners = [self.mesh.v_pos, self.table.v_pos]
+        corners = [self.mesh.v_pos]
+        if self.table is not None:
+            d["table"] = mitsuba_mesh(self.table, "table", bsdf=mi.load_dict(bsdf_dict(self.table_textures)))
+            corners.append(self.table.v_pos)
+        for name, prop, tex in self.props:
+            d[name] = mitsuba_mesh(prop, name, bsdf=mi.load_dict(bsdf_dict(tex)))
+            corners.append(prop.v_pos)
         if self.background > 0:
             r = self.background_distance
             d["background"] = {"type": "sphere", "center": self.center.tolist(), "radius": r,
@@ -199,10 +288,19 @@ class TabletopScene:
                                     "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [float(ambient)] * 3}}}
             amb = mi.render(mi.load_dict(da), seed=int(seed) + 1, spp=int(spp))
             img += np.array(amb, dtype=np.float32)[:, :, :3]
+        for k, (position, intensity) in enumerate(self.lamps):
+            dl = {**d, "light": {"type": "point", "position": np.asarray(position, float).tolist(),
+                                 "intensity": {"type": "rgb", "value": [float(intensity)] * 3}}}
+            lamp = mi.render(mi.load_dict(dl), seed=int(seed) + 2 + k, spp=int(spp))
+            img += np.array(lamp, dtype=np.float32)[:, :, :3]
         return img
 
-    def object_coverage(self, cam: Camera, spp: int, seed: int) -> np.ndarray:
-        """(H, W) float32 fraction of each pixel's footprint on the object alone."""
+    def object_coverage(self, cam: Camera, spp: int, seed: int, mesh: Mesh | None = None) -> np.ndarray:
+        """(H, W) float32 fraction of each pixel's footprint on the object alone (or on ``mesh``)."""
 
-        rgba = render_reference(self.mesh, self.textures, cam, 1.0, spp, seed=seed, alpha=True)
+        if mesh is None:
+            rgba = render_reference(self.mesh, self.textures, cam, 1.0, spp, seed=seed, alpha=True)
+        else:
+            rgba = render_reference(mesh, {"diffuse": np.full(3, 0.5), "specular": 0.0, "roughness": 1.0}, cam,
+                                    1.0, spp, seed=seed, alpha=True)
         return rgba[:, :, 3]
