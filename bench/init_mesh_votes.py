@@ -127,7 +127,7 @@ def run(name: str, obj: Mesh, genus: int, cams: CameraSet, errors: dict, setting
         mesh, st = rim.visual_hull_mesh(cams, masks, s)
         g = rim.topology(mesh)["genus"]
         r = metrics.chamfer(mesh, obj, n_samples=20_000)
-        print(f"{'ok ' if g == genus else 'BAD'} {name:30s} {label:16s} genus {g:3d}  accuracy {r['accuracy']:.4f}  "
+        print(f"{'ok ' if g == genus else 'BAD'} {name:30s} {label:16s} genus {g:3d}  accuracy {r['accuracy']:.4f}  "  # noqa: T201
               f"completeness {r['completeness']:.4f}  IoU mean {st['mask_iou']['mean']:.3f} min {st['mask_iou']['min']:.3f}"
               f"  repaired {'yes' if st['repairs'] else 'no '}  {time.perf_counter() - t:.1f} s", flush=True)
 
