@@ -19,8 +19,11 @@
    included), the time of SIFT, matching and mapping, matched pairs, registered views, mean and
    max rotation error (degrees) and mean camera-centre error (percent of the object's size)
    against ``gt/cameras.json`` after a similarity fit of the centres
-   (:func:`recon.metrics.pose_errors`), the mean reprojection error, and the ratios of wall time
-   and rotation error to ``today``'s.
+   (:func:`recon.metrics.pose_errors`), the mean reprojection error, the final focal length and
+   silhouette consistency, and the ratios of wall time and rotation error to ``today``'s (or
+   ``before_32``'s). Real photos (no ``gt/``): the errors are nan; registered views, times and
+   the silhouette consistency remain (docs/sfm_speed.md, the skull). A variant's
+   ``no_exif_prior`` runs without linear.json, i.e. without the EXIF focal prior.
 """
 
 from __future__ import annotations
@@ -40,6 +43,8 @@ from recon import metrics  # noqa: E402
 from recon.io.cameras import load_cameras  # noqa: E402
 from recon.io.mesh import read_obj  # noqa: E402
 
+NO_EXIF_PRIOR = "no_exif_prior"  # a variant key, not a setting: run_poses without linear.json (no focal prior)
+
 VARIANTS: dict[str, dict] = {
     # the default before issue 16 item 4: auto chose exhaustive up to 120 views
     "today": {"matcher": "exhaustive"},
@@ -55,6 +60,13 @@ VARIANTS: dict[str, dict] = {
     "ordered_incremental": {"matcher": "ordered", "mapper": "incremental"},
     "sequential": {"matcher": "sequential"},  # COLMAP's sequential pairing (overlap 15, quadratic, no loop)
     "today_4096": {"matcher": "exhaustive", "max_num_features": 4096},
+    # issue 32 (sparse real photos): the defaults now, and the choices they replaced, one at a time
+    "defaults": {},
+    "before_32": {"guided_matching": False, "peak_threshold": 0.001, NO_EXIF_PRIOR: True},  # the defaults before
+    "no_guided": {"guided_matching": False},
+    "low_peak": {"peak_threshold": 0.001},
+    "no_exif_prior": {NO_EXIF_PRIOR: True},
+    "ordered_defaults": {"matcher": "ordered"},  # the ordered matcher (bridging groups) on a set it would not choose
 }
 
 
@@ -86,17 +98,25 @@ def run_variant(name: str, capture: Path, linear: Path, masks: Path, work: Path,
         poses_stage._support_plane_masks = lambda tmp, masks_dir: {"found": False, "reason": "skipped (bench)"}
 
     base = build_settings(PoseSettings, stage_settings("poses", "balanced", capture))
-    settings = dataclasses.replace(base, **VARIANTS[name])
+    variant = {k: v for k, v in VARIANTS[name].items() if k != NO_EXIF_PRIOR}
+    settings = dataclasses.replace(base, **variant)
     out = work / f"poses_{name}"
     load = os.getloadavg()
     t0, c0 = time.perf_counter(), time.process_time()
-    diag = run_poses(linear, out, settings, masks_dir=masks, linear_json=linear / "linear.json")
+    linear_json = None if VARIANTS[name].get(NO_EXIF_PRIOR) else linear / "linear.json"
+    diag = run_poses(linear, out, settings, masks_dir=masks, linear_json=linear_json)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    true = load_cameras(capture / "gt" / "cameras.json")
-    est = load_cameras(out / "cameras.json")
-    err = metrics.pose_errors(est, true)
-    gt = read_obj(capture / "gt" / "mesh.obj")
-    size = float(max(gt.bbox()[1] - gt.bbox()[0]))
+    err = {k: float("nan") for k in ("mean_rotation_deg", "max_rotation_deg", "mean_center", "max_center")}
+    size = 1.0
+    if (capture / "gt" / "cameras.json").is_file():  # a synthetic capture: errors against the truth
+        est = load_cameras(out / "cameras.json")
+        if linear_json is None:  # cameras.json names images/<stem>: the truth's names
+            true_names = {c.stem: c.image for c in load_cameras(capture / "gt" / "cameras.json")}
+            est = type(est)(tuple(dataclasses.replace(c, image=true_names.get(c.stem, c.image)) for c in est),
+                            est.light_intensity)
+        err = metrics.pose_errors(est, load_cameras(capture / "gt" / "cameras.json"))
+        gt = read_obj(capture / "gt" / "mesh.obj")
+        size = float(max(gt.bbox()[1] - gt.bbox()[0]))
     t = diag["timings"]
     row = {
         "variant": name, "settings": VARIANTS[name], "wall_s": wall, "cpu_s": cpu,
@@ -108,6 +128,10 @@ def run_variant(name: str, capture: Path, linear: Path, masks: Path, work: Path,
         "mean_center_pct": 100 * err["mean_center"] / size, "max_center_pct": 100 * err["max_center"] / size,
         "reprojection_px": diag["mean_reprojection_error_px"],
         "trials": [(tr["mapper"], tr["registered"], round(tr["seconds"], 1)) for tr in diag["trials"]],
+        "unregistered": diag["unregistered"], "silhouette_consistency": diag["silhouette_consistency"],
+        "focal_px": diag["camera"]["params"][0], "focal_prior": [diag["camera"]["focal_prior_px"],
+                                                                 diag["camera"]["focal_prior_source"]],
+        "seconds": diag["seconds"],
     }
     import shutil
 
@@ -116,10 +140,11 @@ def run_variant(name: str, capture: Path, linear: Path, masks: Path, work: Path,
 
 
 def table(rows: list[dict]) -> str:
-    ref = next((r for r in rows if r["variant"] == "today"), None)
+    ref = next((r for r in rows if r["variant"] == "today"), None) or \
+        next((r for r in rows if r["variant"] == "before_32"), None)
     lines = ["| variant | pairs | wall (s) | CPU (s) | SIFT / match / map (s) | registered | rotation mean / max (deg) "
-             "| centre mean (% of object) | reproj. (px) | wall vs today | rotation vs today |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| centre mean (% of object) | reproj. (px) | focal (px) | silhouette | wall vs ref | rotation vs ref |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         m = r.get("matching") or {}
         n = r["views"]
@@ -128,16 +153,19 @@ def table(rows: list[dict]) -> str:
             pairs = f"{pairs} + exhaustive fallback"
         ratio = (f"{r['wall_s'] / ref['wall_s']:.2f}", f"{r['mean_rotation_deg'] / ref['mean_rotation_deg']:.2f}") \
             if ref else ("-", "-")
+        sil = r.get("silhouette_consistency")
         lines.append(
             f"| {r['variant']} | {pairs} | {r['wall_s']:.0f} | {r['cpu_s']:.0f} | {r['sift_s']:.0f} / {r['match_s']:.0f}"
             f" / {r['map_s']:.0f} | {r['registered']}/{n} | {r['mean_rotation_deg']:.3f} / {r['max_rotation_deg']:.3f}"
-            f" | {r['mean_center_pct']:.2f} | {r['reprojection_px']:.3f} | {ratio[0]} | {ratio[1]} |")
+            f" | {r['mean_center_pct']:.2f} | {r['reprojection_px']:.3f} | {r.get('focal_px', float('nan')):.0f}"
+            f" | {'-' if sil is None else f'{sil:.3f}'} | {ratio[0]} | {ratio[1]} |")
     return "\n".join(lines)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("capture", type=Path, help="a synthetic capture (gt/cameras.json, gt/mesh.obj), no cameras.json")
+    ap.add_argument("capture", type=Path, help="a capture without cameras.json; a synthetic one's gt/cameras.json and "
+                    "gt/mesh.obj give the pose errors (real photos: registered views, times, silhouette consistency)")
     ap.add_argument("--out", type=Path, default=Path("bench/out/sfm"))
     ap.add_argument("--variants", nargs="+", default=["today", "ordered", "ordered_4096", "ordered_2048",
                                                        "ordered_global", "ordered_1024px"],
