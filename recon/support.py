@@ -102,6 +102,17 @@ class SupportPlane:
                               "towards the cameras"}
 
 
+def standing_points(points: np.ndarray, plane: SupportPlane | None, min_height: float) -> np.ndarray:
+    """(N,) bool: which of ``points (N, 3)`` stand above ``plane`` by more than ``min_height`` (the
+    object's points, not the table's). All True without a plane (an object in the void). Checks
+    that compare sparse points with object masks (e.g. the share of them that project inside the
+    masks) must count only these: a table point lies outside every object mask by right."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if plane is None:
+        return np.ones(len(pts), bool)
+    return plane.height(pts) > float(min_height)
+
+
 def save_plane(path: str | os.PathLike, plane: SupportPlane, **extra) -> None:
     """Write ``plane.json`` atomically (``extra`` keys are stored beside the plane)."""
     with atomic_path(path) as tmp:

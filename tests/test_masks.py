@@ -201,3 +201,73 @@ def test_run_masks_with_cameras_of_a_void_capture(scene, tmp_path):
     for stem in plain["views"]:
         np.testing.assert_array_equal(read_mask(tmp_path / "plain" / f"{stem}.png"),
                                       read_mask(tmp_path / "cams" / f"{stem}.png"))
+
+
+# ---- flash-falloff masks made consistent across views (recon.masks.consistent) ----
+@pytest.fixture(scope="module")
+def ring_views():
+    """16 cameras around a torus standing upright (its hole seen from the sides), true silhouettes."""
+    from _geometry_scene import silhouette
+
+    from recon.io.cameras import Camera, CameraSet, intrinsics, look_at
+    from recon.synth.shapes import torus_grid
+
+    torus, _, _ = torus_grid(64, 24, 0.6, 0.22)
+    v = torus.v_pos @ np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], float).T  # the hole's axis along y
+    torus = type(torus)(v, torus.t_pos_idx)
+    K = intrinsics(160, 120, 40.0)
+    frames = []
+    for k in range(16):
+        az = 2 * np.pi * k / 16
+        el = np.radians(10 + 30 * (k % 3))
+        eye = 4.0 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        frames.append(Camera(f"images/{k:04d}.exr", 160, 120, K.copy(), look_at(eye, [0, 0, 0])))
+    cams = CameraSet(tuple(frames), 1.0)
+    return cams, [silhouette(torus, c) for c in cams]
+
+
+def test_consistent_masks_fill_what_one_view_misses_and_drop_what_it_adds(ring_views):
+    from recon.masks.common import holes
+    from recon.masks.consistent import consistent_masks
+
+    cams, truth = ring_views
+    masks = [m.copy() for m in truth]
+    ys, xs = np.nonzero(truth[0])
+    cy, cx = int(np.median(ys)), int(xs.min()) + 4
+    masks[0][cy - 6:cy + 6, cx - 3:cx + 8] = False  # a dark patch the flash missed, at the outline
+    ys, xs = np.nonzero(truth[5])
+    masks[5][int(np.median(ys)) - 5:int(np.median(ys)) + 5, int(np.median(xs)) - 5:int(np.median(xs)) + 5] = False
+    masks[9][:12, :] = True  # a lit wall along the top of the frame
+    fixed, info = consistent_masks(masks, cams)
+    assert info["applied"]
+    for k in (0, 5, 9):
+        assert _iou(fixed[k], truth[k]) > max(0.95, _iou(masks[k], truth[k]) + 0.02), k
+    # the torus's hole is real: the views that see it keep it open
+    opened = [k for k, m in enumerate(truth) if holes(m).sum() > 30]
+    assert opened and all(holes(fixed[k]).sum() > 0.5 * holes(truth[k]).sum() for k in opened)
+    for k in range(16):
+        assert _iou(fixed[k], truth[k]) > 0.93
+
+
+def test_consistent_masks_need_views(ring_views):
+    from recon.io.cameras import CameraSet
+    from recon.masks.consistent import consistent_masks
+
+    cams, truth = ring_views
+    few = CameraSet(cams.frames[:4], 1.0)
+    out, info = consistent_masks(truth[:4], few)
+    assert not info["applied"] and "4 views" in info["reason"]
+    assert all((a == b).all() for a, b in zip(out, truth[:4], strict=True))
+
+
+def test_fill_enclosed_fills_notches_not_the_outside():
+    from recon.masks.consistent import fill_enclosed
+
+    mask = np.zeros((60, 60), bool)
+    mask[10:50, 10:50] = True
+    mask[25:35, 10:22] = False  # a notch open to the left
+    support = np.zeros_like(mask)
+    support[8:52, 8:52] = True  # a little wider than the object all round
+    out = fill_enclosed(mask, support, 0.6)
+    assert out[25:35, 12:22].all()  # the notch (mostly bordered by the mask) is filled
+    assert not out[8:10, :].any() and not out[:, 50:].any()  # the thin outer rim is not

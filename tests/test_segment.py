@@ -8,8 +8,12 @@ import pytest
 from _geometry_scene import icosphere, silhouette, synth_capture
 from _tabletop_scene import TABLETOP_TEST, tabletop_capture
 
+from recon.masks import evidence as ev
 from recon.masks import tabletop as sg
 from recon.masks.common import MaskError
+from recon.masks.geometry import flash_shading, neighbours, plane_homography, plane_points
+from recon.masks.graphcut import graph_cut
+from recon.masks.vote import carve, votes_needed
 from recon.masks.views import run_tabletop_masks
 from recon.io.cameras import load_cameras
 from recon.io.images import read_exr, read_mask, write_exr, write_mask
@@ -43,17 +47,17 @@ def mug_masks(mug, tmp_path_factory):
 def table_only():
     """Cameras of a tabletop capture and exact renders of the bare table (Lambertian wood, the
     flash at each camera: I a_d / pi * h / r^3), no object."""
-    s = SynthSettings(**{**TABLETOP_TEST, "n_views": 12, "width": 96, "height": 72})
+    s = SynthSettings(**{**TABLETOP_TEST, "n_views": 16, "width": 192, "height": 144})
     cams = tabletop_cameras(s)
     plane = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.8)
     half = s.table_half_size
     tex = table_texture(256, half, seed=4)
     images = []
     for cam in cams:
-        P, hit = sg.plane_points(cam, plane)
+        P, hit = plane_points(cam, plane)
         uv = np.stack([(P[..., 0] + half) / (2 * half), (P[..., 1] + half) / (2 * half)], -1)
         a = bilinear_lookup(tex, uv)
-        shade = sg.flash_shading(cam.center, P, plane)
+        shade = flash_shading(cam.center, P, plane)
         on = hit & (np.abs(P[..., :2]) < half).all(-1)
         images.append(np.where(on[..., None], cams.light_intensity * a / np.pi * shade[..., None], 0.0)
                       .astype(np.float32))
@@ -67,7 +71,7 @@ def test_plane_homography_maps_plane_points():
     rng = np.random.default_rng(0)
     pts = plane.project(rng.uniform(-1.5, 1.5, (50, 3)))
     ci, cj = cams.frames[0], cams.frames[3]
-    H = sg.plane_homography(ci, cj, plane)
+    H = plane_homography(ci, cj, plane)
     xi, _ = ci.project(pts)
     xj, _ = cj.project(pts)
     h = np.c_[xi - 0.5, np.ones(len(pts))] @ H.T  # OpenCV pixel coordinates
@@ -78,7 +82,7 @@ def test_plane_points_and_flash_shading():
     cams = tabletop_cameras(SynthSettings(**{**TABLETOP_TEST, "n_views": 3}))
     plane = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.8)
     cam = cams.frames[1]
-    P, hit = sg.plane_points(cam, plane)
+    P, hit = plane_points(cam, plane)
     assert hit[-1].all()  # the bottom row sees the table
     np.testing.assert_allclose(plane.height(P[hit]), 0.0, atol=1e-9)
     xy, _ = cam.project(P[hit])
@@ -86,7 +90,7 @@ def test_plane_points_and_flash_shading():
     np.testing.assert_allclose(xy, np.stack([j, i], -1)[hit], atol=1e-6)
     r = np.linalg.norm(P[hit] - cam.center, axis=1)
     mu = plane.height(cam.center) / r
-    np.testing.assert_allclose(sg.flash_shading(cam.center, P[hit], plane), mu / r**2)
+    np.testing.assert_allclose(flash_shading(cam.center, P[hit], plane), mu / r**2)
 
 
 def test_graph_cut_recovers_a_region():
@@ -96,11 +100,11 @@ def test_graph_cut_recovers_a_region():
     p = np.clip(np.where(truth, 0.75, 0.25) + rng.normal(0, 0.25, truth.shape), 0.02, 0.98)
     guide = np.repeat((truth * 200 + 30).astype(np.uint8)[..., None], 3, 2)
     raw = p > 0.5
-    cut = sg.graph_cut(-np.log(p), -np.log(1 - p), guide, smoothness=2.0)
+    cut = graph_cut(-np.log(p), -np.log(1 - p), guide, smoothness=2.0)
     assert (cut != truth).mean() < 0.2 * (raw != truth).mean()
     active = np.zeros_like(truth)
     active[:, :40] = True
-    cut = sg.graph_cut(-np.log(p), -np.log(1 - p), guide, smoothness=2.0, active=active)
+    cut = graph_cut(-np.log(p), -np.log(1 - p), guide, smoothness=2.0, active=active)
     assert not cut[:, 40:].any() and _iou(cut, truth & active) > 0.95
 
 
@@ -113,7 +117,7 @@ def test_carve_tolerates_a_bad_view():
     plane = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.8)
     masks = [silhouette(ball, c) for c in cams]
     masks[4] = np.zeros_like(masks[4])
-    hull = sg.carve(masks, cams, plane, np.zeros(3), 1.5, 1.8, 48, 0.12)
+    hull = carve(masks, cams, plane, np.zeros(3), 1.5, 1.8, 48, 0.12)
     lo, hi = hull.bbox()
     np.testing.assert_allclose(lo, [-0.6, -0.6, -0.8], atol=2.5 * hull.step)
     np.testing.assert_allclose(hi, [0.6, 0.6, 0.4], atol=2.5 * hull.step)
@@ -122,27 +126,65 @@ def test_carve_tolerates_a_bad_view():
         if m.any():
             assert (m & ~proj).sum() <= 0.01 * m.sum()
             assert _iou(proj, m) > 0.75
-    assert sg.carve([np.zeros_like(m) for m in masks], cams, plane, np.zeros(3), 1.5, 1.8, 16, 0.12) is None
+    assert carve([np.zeros_like(m) for m in masks], cams, plane, np.zeros(3), 1.5, 1.8, 16, 0.12) is None
     # below the band the hull is the extrusion of its section at the band's height: the object
     # stands on the plane (at height 0.3 the ball's section has radius sqrt(0.6^2 - 0.3^2) = 0.52)
-    banded = sg.carve(masks, cams, plane, np.zeros(3), 1.5, 1.8, 48, 0.12, band=0.3)
+    banded = carve(masks, cams, plane, np.zeros(3), 1.5, 1.8, 48, 0.12, band=0.3)
     low = banded.points[plane.height(banded.points) < 0.3 - banded.step]
     r = np.linalg.norm(low[:, :2], axis=1)
     assert r.max() == pytest.approx(0.52, abs=2 * banded.step)
     assert len(banded.band) > 0 and plane.height(banded.band).max() < 0.3
 
 
-# ---- consistency and errors on the bare table ----
-def test_bare_table_is_consistent_and_holds_no_object(table_only):
+# ---- evidence and errors on the bare table ----
+def test_bare_table_is_seen_as_table_and_holds_no_object(table_only):
     cams, plane, images = table_only
-    nbrs = sg.neighbours(cams, sg.SegmentSettings())
+    logs = [ev.log_luminance(im) for im in images]
+    nbrs = neighbours(cams, 6, 4.0, 70.0)
     for i in (0, 7):
-        C = sg.plane_consistency(images, cams, plane, i, nbrs[i])
-        seen = np.isfinite(C)
-        assert seen.mean() > 0.5
-        assert np.median(C[seen]) < 0.1 and np.percentile(C[seen], 95) < sg.SegmentSettings().carve_threshold
+        e = ev.table_evidence(logs, cams, plane, i, nbrs[i], [0.05, 0.1, 0.2, 0.4])
+        P, hit = plane_points(cams.frames[i], plane)
+        on = hit & (np.abs(P[..., :2]) < 3.0).all(-1)
+        assert e["table"][on].mean() > 0.5
+        C = ev.plane_difference(images, cams, plane, i, nbrs[i])
+        assert np.median(C[on & np.isfinite(C)]) < 0.1
     with pytest.raises(sg.SegmentError, match=r"no object stands on the support plane.*0000.*What to try"):
         sg.segment_tabletop(images, cams, plane)
+
+
+def test_plain_patch_is_never_table(table_only):
+    """A plain surface matches whatever a warp lands on (the plane test's blind spot): without
+    contrast the evidence says nothing, and a shading ramp across it is no contrast either."""
+    cams, plane, images = table_only
+    nbrs = neighbours(cams, 6, 4.0, 70.0)
+    painted = []
+    for im in images:
+        h, w = im.shape[:2]
+        j, i = np.meshgrid(np.arange(w), np.arange(h))
+        disc = (j - w / 2) ** 2 + (i - h * 0.6) ** 2 < (0.2 * h) ** 2
+        ramp = (0.4 + 0.3 * j / w)[..., None] * np.array([0.7, 0.6, 0.45])  # a lit glaze, shaded across
+        painted.append(np.where(disc[..., None], ramp, im).astype(np.float32))
+    logs = [ev.log_luminance(im) for im in painted]
+    e = ev.table_evidence(logs, cams, plane, 3, nbrs[3], [0.05, 0.1, 0.2, 0.4])
+    h, w = painted[3].shape[:2]
+    j, i = np.meshgrid(np.arange(w), np.arange(h))
+    inner = (j - w / 2) ** 2 + (i - h * 0.6) ** 2 < (0.2 * h - 7) ** 2  # windows inside the disc
+    assert inner.sum() > 50 and not e["table"][inner].any() and not e["contrast"][inner].any()
+
+
+def test_zncc_ignores_gain_and_offset():
+    rng = np.random.default_rng(0)
+    g = rng.normal(size=(40, 50)).astype(np.float32)
+    valid = np.ones_like(g, bool)
+    z = ev.zncc(g, ev.window_stats(g, 3), 2.5 * g + 7.0, valid, 3, 0.01)
+    np.testing.assert_allclose(z[5:-5, 5:-5], 1.0, atol=1e-3)
+    flat = np.full_like(g, 3.0)
+    assert np.isnan(ev.zncc(flat, ev.window_stats(flat, 3), g, valid, 3, 0.01)).all()
+
+
+def test_votes_needed():
+    np.testing.assert_array_equal(votes_needed(np.array([5, 10, 40]), 0.12, 3), [3, 3, 5])
+    np.testing.assert_array_equal(votes_needed(np.array([5, 10, 40]), 0.0), [1, 1, 1])
 
 
 # ---- the mug on the table ----
@@ -245,7 +287,7 @@ def test_missing_image_names_the_file(mug, tmp_path):
 def test_settings_are_checked():
     with pytest.raises(ValueError, match="min_angle"):
         sg.SegmentSettings(min_angle=50.0, max_angle=40.0)
-    with pytest.raises(ValueError, match="carve_tolerance"):
-        sg.SegmentSettings(carve_tolerance=0.6)
+    with pytest.raises(ValueError, match="carve_fraction"):
+        sg.SegmentSettings(carve_fraction=0.6)
     s = sg.SegmentSettings(plane={"inlier_distance": 0.01})
     assert s.plane.inlier_distance == 0.01

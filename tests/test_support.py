@@ -133,3 +133,15 @@ def test_settings_are_checked():
         PlaneSettings(inlier_distance=0.0)
     with pytest.raises(ValueError, match="min_inliers"):
         PlaneSettings(min_inliers=2)
+
+
+def test_standing_points_leave_out_the_table():
+    from recon.support import standing_points
+
+    plane = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.8)  # z = -0.8
+    rng = np.random.default_rng(0)
+    table = np.c_[rng.uniform(-3, 3, (200, 2)), np.full(200, -0.8) + rng.normal(0, 0.002, 200)]
+    obj = rng.normal(0, 0.3, (50, 3))
+    keep = standing_points(np.concatenate([table, obj]), plane, 0.02)
+    assert not keep[:200].any() and keep[200:].all()
+    assert standing_points(table, None, 0.02).all()  # no plane: every point counts

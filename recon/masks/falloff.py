@@ -98,6 +98,19 @@ def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
     return float(edges[k + 1])
 
 
+def background_threshold(log_l: np.ndarray, settings: MaskSettings = MaskSettings()) -> tuple[float, float]:
+    """``(t, t_otsu)``: the threshold of step 2 (module docstring) on log10 luminances ``log_l``,
+    just above the background class of Otsu's split, and Otsu's threshold itself."""
+    t_otsu = otsu_threshold(log_l)
+    bg = log_l[log_l <= t_otsu]
+    med = float(np.median(bg))
+    mad = 1.4826 * float(np.median(np.abs(bg - med)))
+    # just above the background: its robust spread, and its upper tail where noise has one
+    # (the smallest step above a constant background is a hair above the floor)
+    t_bg = max(med + settings.background_sigmas * mad, float(np.percentile(bg, settings.background_percentile)))
+    return min(t_otsu, t_bg + 1e-6), t_otsu
+
+
 def derive_mask(rgb_linear: np.ndarray, settings: MaskSettings = MaskSettings(),
                 white_level: float | None = None) -> tuple[np.ndarray, dict]:
     """Object mask of one flash-lit linear image (method in the module docstring).
@@ -140,14 +153,7 @@ def derive_mask(rgb_linear: np.ndarray, settings: MaskSettings = MaskSettings(),
             f"noise, a black object or a photo {stops:.0f} stops underexposed; check that the flash fired and "
             "expose so that the object's brightest parts come near clipping")
     log_l = np.log10(np.maximum(lum, settings.floor * top))
-    t_otsu = otsu_threshold(log_l)
-    bg = log_l[log_l <= t_otsu]
-    med = float(np.median(bg))
-    mad = 1.4826 * float(np.median(np.abs(bg - med)))
-    # just above the background: its robust spread, and its upper tail where noise has one
-    # (the smallest step above a constant background is a hair above the floor)
-    t_bg = max(med + settings.background_sigmas * mad, float(np.percentile(bg, settings.background_percentile)))
-    t = min(t_otsu, t_bg + 1e-6)
+    t, t_otsu = background_threshold(log_l, settings)
     mask = log_l > t
 
     short = min(mask.shape)

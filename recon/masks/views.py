@@ -2,7 +2,7 @@
 or flash-falloff masks (:mod:`recon.masks.falloff`) when nothing stands on a plane; given masks
 (:mod:`recon.masks.given`) win view by view.
 
-The poses stage calls :func:`run_tabletop_masks` on its undistorted views, cameras and sparse
+The poses stage calls :func:`run_view_masks` (also named ``run_tabletop_masks``) on its undistorted views, cameras and sparse
 points; a capture with its own ``cameras.json`` gets the same through ``run_masks(..., cameras=)``.
 """
 
@@ -24,6 +24,7 @@ from recon.io.cameras import Camera, CameraSet, load_cameras
 from recon.io.images import ImageError, read_exr, read_mask, write_mask
 from recon.io.mesh import read_points
 from recon.masks.common import MaskError
+from recon.masks.consistent import ConsistentSettings, consistent_masks
 from recon.masks.falloff import MaskSettings, derive_mask
 from recon.masks.given import fit_given_mask
 from recon.masks.points import triangulate_points
@@ -32,7 +33,7 @@ from recon.support import fit_support_plane, save_plane
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SegmentError", "SegmentSettings", "run_tabletop_masks"]
+__all__ = ["SegmentError", "SegmentSettings", "run_tabletop_masks", "run_view_masks"]
 
 
 def _cameras_at_image_size(cams: CameraSet, images: list[np.ndarray], source) -> CameraSet:
@@ -55,7 +56,7 @@ def _cameras_at_image_size(cams: CameraSet, images: list[np.ndarray], source) ->
     return dataclasses.replace(cams, frames=tuple(frames))
 
 
-def run_tabletop_masks(
+def run_view_masks(
     image_dir: str | os.PathLike,
     cameras: str | os.PathLike,
     out_dir: str | os.PathLike,
@@ -64,6 +65,7 @@ def run_tabletop_masks(
     given_dir: str | os.PathLike | None = None,
     mask_settings: MaskSettings | None = None,
     given_stems: Collection[str] | None = None,
+    consistent_settings: ConsistentSettings | None = None,
 ) -> dict:
     """Write ``out_dir/<stem>.png`` (object masks), ``out_dir/masks.json`` and, when a support
     plane is found, ``out_dir/plane.json`` (:mod:`recon.support`, in the frame of ``cameras``).
@@ -81,6 +83,8 @@ def run_tabletop_masks(
         ``poses/undistorted/masks`` holds every view's mask of the masks stage; the views whose
         ``masks.json`` source is ``given`` are the capture's own).
     mask_settings : the flash-falloff masks' settings, used when no plane is found.
+    consistent_settings : the vote that makes those masks consistent across the views
+        (:mod:`recon.masks.consistent`).
 
     Returns
     -------
@@ -107,7 +111,7 @@ def run_tabletop_masks(
             if p.is_file() and (given_stems is None or cam.stem in given_stems):
                 given[cam.stem] = fit_given_mask(read_mask(p), p, (cam.width, cam.height))
     # the plane is looked for even when every view has a given mask: the later stages use it
-    plane, plane_info = None, {"found": False}
+    plane, plane_info, pts = None, {"found": False}, None
     if len(cams) < settings.min_views:
         plane_info = {"found": False, "reason": f"{len(cams)} views (need >= {settings.min_views})"}
     else:
@@ -128,7 +132,7 @@ def run_tabletop_masks(
         method = "given"
     elif plane is not None:
         log.info("support plane found (%s): %s", plane_info["source"], plane_info["reason"])
-        derived, seg_info = segment_tabletop(images, cams, plane, settings)
+        derived, seg_info = segment_tabletop(images, cams, plane, settings, points=pts)
         for cam, m in zip(cams, derived, strict=True):
             masks[cam.stem] = m
             views[cam.stem] = {"source": "tabletop", **seg_info["views"][cam.stem]}
@@ -148,6 +152,19 @@ def run_tabletop_masks(
             masks[cam.stem] = m
             views[cam.stem] = {"source": "derived", **inf}
         method = "flash_falloff"
+        # every view's mask, given or derived, votes; only the derived ones change
+        every = [given.get(c.stem, masks.get(c.stem)) for c in cams]
+        fixed, seg_info = consistent_masks(every, cams, consistent_settings or ConsistentSettings())
+        if seg_info.get("applied"):
+            method = "flash_falloff_consistent"
+            for cam, m in zip(cams, fixed, strict=True):
+                if cam.stem not in given:
+                    masks[cam.stem] = m
+                    views[cam.stem].update(seg_info["views"][cam.stem])
+            log.info("flash-falloff masks made consistent across %d views (hull voxel %.3g)", len(cams),
+                     seg_info["step"])
+        else:
+            log.info("flash-falloff masks kept view by view: %s", seg_info.get("reason"))
     for stem, m in given.items():
         masks[stem] = m
         views[stem] = {"source": "given", "coverage": float(m.mean())}
@@ -155,11 +172,18 @@ def run_tabletop_masks(
         for cam in cams:
             write_mask(tmp / f"{cam.stem}.png", masks[cam.stem])
         if plane is not None:
-            bbox = {} if seg_info is None else {
+            bbox = {} if seg_info is None or "hull" not in seg_info else {
                 "object_bbox": {"lo": seg_info["hull"]["bbox_lo"], "hi": seg_info["hull"]["bbox_hi"]}}
             save_plane(tmp / "plane.json", plane, source=plane_info["source"], **bbox)
         summary = {"method": method, "views": {c.stem: views[c.stem] for c in cams}, "plane": plane_info,
-                   "segment": None if seg_info is None else {k: v for k, v in seg_info.items() if k != "views"},
+                   "segment": None if seg_info is None or method != "tabletop" else
+                   {k: v for k, v in seg_info.items() if k != "views"},
+                   "consistent": {k: v for k, v in seg_info.items() if k != "views"}
+                   if seg_info is not None and method.startswith("flash_falloff") else None,
                    "settings": asdict(settings), "seconds": time.perf_counter() - t0}
         (tmp / "masks.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary
+
+
+run_tabletop_masks = run_view_masks
+"""The former name of :func:`run_view_masks` (the poses stage calls it so)."""

@@ -1,0 +1,142 @@
+"""Flash-falloff masks made consistent across the views, for an object without a support plane
+(an object in the void, or on a stand), once the cameras are known.
+
+One view's flash-falloff mask (:mod:`recon.masks.falloff`) errs in two ways, and the other views
+correct both:
+
+- **It cuts the object's dark parts**: a concavity or a shadow the flash barely lights (a
+  skull's eye sockets and palate, the shade under a jaw) falls below the threshold and leaves a
+  hole or a notch in the mask. The other views see the same 3D region inside their silhouettes:
+  the hull voted from the *other* views' masks (leave-one-out, :func:`recon.masks.vote.hole_support`)
+  covers it, and a hole or notch of the mask that this hull covers, and that the mask encloses
+  (most of its outline borders the mask), is filled. A real opening (a handle) is seen through
+  by other views too, which carve it from that hull: it stays open.
+- **It takes lit background**: a lamp, a lit wall or a table in the room touching the object's
+  outline. No 3D region is inside most views' masks there: the hull voted from all views
+  (:func:`recon.masks.vote.carve`: a voxel goes when more than ``tolerance`` of the views that
+  see it put it outside their masks; views whose frame it leaves abstain) does not reach it,
+  and each mask keeps what lies inside the hull's silhouette.
+
+A stand under the object is kept where most of the views that see it hold it in their masks
+(the flash lights a pole the object stands on as much as the object), and left out where they
+do not (a base the views from above see apart from the object); every view gets what the vote
+decided. The hull's grid stands on a plane across the cameras' mean up direction (no table is
+needed; the object is not extruded down to it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from recon.io.cameras import CameraSet
+from recon.masks.common import dilate, erode, fill_holes_covered, holes
+from recon.masks.evidence import scaled_camera, working_scale
+from recon.masks.vote import carve, hole_support
+from recon.support import SupportPlane, aim_point, scene_scale
+
+
+@dataclass(frozen=True)
+class ConsistentSettings:
+    """The vote of :func:`consistent_masks`."""
+
+    tolerance: float = 0.25  # a voxel goes when more than this share of the views that see it say outside
+    # (on the real skull 0.1 cut the teeth, which several views' flash-falloff masks miss)
+    hole_tolerance: float = 0.05  # leave-one-out hulls: the share of the other views' misses a voxel survives
+    enclosed: float = 0.6  # a notch is filled when at least this share of its outline borders the mask
+    resolution: int = 128  # voxels along the longest side of the fine grid
+    work_size: int = 800  # long side of the masks the vote reads
+    min_views: int = 6  # fewer views: the masks stay as they are
+
+    def __post_init__(self):
+        if not 0 <= self.tolerance < 0.5 or not 0 <= self.hole_tolerance < 0.5:
+            raise ValueError("tolerance and hole_tolerance must be in [0, 0.5)")
+        if not 0 < self.enclosed <= 1 or self.resolution < 16 or self.min_views < 3:
+            raise ValueError("enclosed must be in (0, 1], resolution >= 16, min_views >= 3")
+
+
+def _up(cams: CameraSet) -> np.ndarray:
+    """The cameras' mean up direction (photos are taken upright: up is -y of the camera)."""
+    up = -np.mean([c.camera_to_world[:3, 1] for c in cams], axis=0)
+    n = np.linalg.norm(up)
+    return up / n if n > 1e-9 else np.array([0.0, 0.0, 1.0])
+
+
+def _resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
+    import cv2
+
+    if mask.shape == (height, width):
+        return mask
+    return cv2.resize(mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA) >= 0.5
+
+
+def fill_enclosed(mask: np.ndarray, support: np.ndarray, enclosed: float) -> np.ndarray:
+    """``mask`` with the components of ``support & ~mask`` (less any rim thinner than 5 px) added
+    whose outline borders the mask for at least the share ``enclosed`` (a notch or hole the mask
+    surrounds), and the holes ``support`` covers."""
+    from scipy import ndimage
+
+    cand = support & ~mask
+    # a hull's silhouette overlaps the mask's outline by a thin rim all round: open it away, so
+    # that a notch is not one piece with the rim
+    cand = dilate(erode(cand, 2), 2) & cand
+    if cand.any():
+        labels, n = ndimage.label(cand)
+        ring = dilate(cand, 1) & ~cand
+        # per component: its outline pixels (each given to the nearest component), how many are mask
+        idx = ndimage.distance_transform_edt(~cand, return_distances=False, return_indices=True)
+        owner = labels[idx[0], idx[1]]
+        total = np.bincount(owner[ring], minlength=n + 1)
+        inside = np.bincount(owner[ring & mask], minlength=n + 1)
+        keep = np.flatnonzero((total > 0) & (inside >= enclosed * np.maximum(total, 1)))
+        keep = keep[keep > 0]
+        if len(keep):
+            mask = mask | np.isin(labels, keep)
+    return fill_holes_covered(mask, support) if holes(mask).any() else mask
+
+
+def consistent_masks(masks: list[np.ndarray], cams: CameraSet,
+                     settings: ConsistentSettings = ConsistentSettings()) -> tuple[list[np.ndarray], dict]:
+    """The masks (one (H, W) bool per camera of ``cams``) made consistent across the views (module
+    docstring). Returns the masks and ``info`` (per view the share of pixels added and removed,
+    the hull's voxel size and bounding box); with fewer than ``min_views`` views the masks come
+    back unchanged."""
+    n = len(cams)
+    if n < settings.min_views:
+        return [m.copy() for m in masks], {"applied": False, "reason": f"{n} views (need >= {settings.min_views})"}
+    wcams = CameraSet(tuple(scaled_camera(c, working_scale(c, settings.work_size)) for c in cams),
+                      cams.light_intensity)
+    small = [_resize_mask(m, w.width, w.height) for m, w in zip(masks, wcams, strict=True)]
+    target = aim_point(cams)
+    scale = scene_scale(cams, target)
+    up = _up(cams)
+    half = 0.6 * scale
+
+    def floor_under(center, h):
+        return SupportPlane.through(np.asarray(center) - h * up, up)
+
+    values = [m.astype(np.uint8) for m in small]
+    ground = floor_under(target, half)
+    coarse = carve(values, wcams, ground, target, half, 2 * half, 48, settings.tolerance, seed_point=target)
+    if coarse is None:
+        return [m.copy() for m in masks], {"applied": False, "reason": "the views' masks share no 3D region"}
+    lo, hi = coarse.bbox()
+    center = 0.5 * (lo + hi)
+    extent = 0.5 * float(np.max(hi - lo)) + 2 * coarse.step
+    ground = floor_under(center, extent)
+    box = (center, extent, 2 * extent)
+    hull = carve(values, wcams, ground, *box, settings.resolution, settings.tolerance, seed_point=center)
+    if hull is None:
+        return [m.copy() for m in masks], {"applied": False, "reason": "the fine hull vanished"}
+    others = hole_support(values, wcams, ground, *box, settings.resolution, settings.hole_tolerance)
+    out, views = [], {}
+    for i, (cam, w) in enumerate(zip(cams, wcams, strict=True)):
+        m = masks[i]
+        keep = _resize_mask(dilate(hull.project(w), 1), cam.width, cam.height)
+        support = _resize_mask(others[i], cam.width, cam.height)
+        new = fill_enclosed(m, support, settings.enclosed) & keep
+        views[cam.stem] = {"added": float((new & ~m).mean()), "removed": float((m & ~new).mean())}
+        out.append(new)
+    lo, hi = hull.bbox()
+    return out, {"applied": True, "views": views, "step": hull.step, "bbox_lo": lo.tolist(), "bbox_hi": hi.tolist()}
