@@ -45,6 +45,13 @@ IDS = ["glb", "usdz", "usdz-fixed"]
 # ground-truth asset of captures/demo (see docs/viewers.md for the measured values).
 RMSE_LIMIT = {("glb", False): 0.11, ("usdz", False): 0.11, ("usdz", True): 0.11}
 SPECULAR_RMSE_LIMIT = 0.032
+# The specular-only comparison is also bounded relative to the lobe's own strength in each view
+# (the sRGB RMSE of recon's specular-only render against black): an optimized asset may carry a
+# lobe 10x weaker than the ground truth's (the draft demo: a_s ~0.08, r ~0.5), and there a wrong
+# roughness or a lost specular map moves the image by less than 0.032 although it is the whole
+# lobe. On the ground truth the glb's lobe matches within 0.08-0.13 of the lobe (docs/viewers.md:
+# 0.021 of 0.16, 0.009 of 0.07, 0.017 of 0.21), r -> r^2 misses by 0.35-0.63 of it.
+SPECULAR_RMSE_REL = 0.25
 
 NEUTRAL = {  # Principled BSDF inputs that must stay at these values (unlinked)
     "Alpha": 1.0, "Coat Weight": 0.0, "Sheen Weight": 0.0, "Transmission Weight": 0.0,
@@ -371,16 +378,32 @@ def test_appearance_matches_recon(result, recon_renders):
         f"{[round(r, 4) for r in rmse]} against recon's render, limit {limit}"
 
 
+def specular_limits(refs) -> list[float]:
+    """Per view: the specular-only RMSE limit, SPECULAR_RMSE_LIMIT or SPECULAR_RMSE_REL of the
+    lobe's strength (recon's specular-only render against black), whichever is smaller."""
+    out = []
+    for ref in refs:
+        mask = ref[..., 3] > 0.5
+        lobe = image_rmse(ref[..., :3], np.zeros_like(ref[..., :3]), mask, mask)
+        out.append(min(SPECULAR_RMSE_LIMIT, SPECULAR_RMSE_REL * lobe))
+    return out
+
+
+def _rounded(values) -> list[float]:
+    return [round(float(v), 4) for v in values]
+
+
 def test_specular_lobe_matches_recon(result, recon_renders):
     """The specular lobe alone (Base Color black in Blender, a_d = 0 in recon): F0 = a_s,
     alpha = r^2 and the specular map's placement, without the diffuse that hides them."""
     fmt, fixed, res = result
-    rmse = appearance_rmse(res, recon_renders(fmt, "specular"), "specular")
+    refs = recon_renders(fmt, "specular")
+    rmse, limits = appearance_rmse(res, refs, "specular"), specular_limits(refs)
+    said = f"specular-only sRGB RMSE per view {_rounded(rmse)}, limits {_rounded(limits)}"
     if fmt == "usdz" and not fixed:  # Blender's USD importer: F0 = 0.04 a_s, the lobe is lost
-        assert min(rmse) > SPECULAR_RMSE_LIMIT, f"usdz: the known weak specular is gone: {rmse}"
+        assert all(r > lim for r, lim in zip(rmse, limits)), f"usdz: the known weak specular is gone: {said}"
         return
-    assert max(rmse) < SPECULAR_RMSE_LIMIT, f"{fmt}{' (fixed)' if fixed else ''}: specular-only " \
-        f"sRGB RMSE per view {[round(r, 4) for r in rmse]}, limit {SPECULAR_RMSE_LIMIT}"
+    assert all(r < lim for r, lim in zip(rmse, limits)), f"{fmt}{' (fixed)' if fixed else ''}: {said}"
 
 
 def test_appearance_check_detects_a_roughness_error(blender):
@@ -388,5 +411,6 @@ def test_appearance_check_detects_a_roughness_error(blender):
     more (r -> r^2, the most common roughness convention error), exceed the limit."""
     res = blender("glb")
     wrong = _recon_renders(res, "specular", roughness=res.asset.r ** 2)
-    rmse = appearance_rmse(res, wrong, "specular")
-    assert max(rmse) > SPECULAR_RMSE_LIMIT, f"r^2 went unnoticed: RMSE {rmse}"
+    rmse, limits = appearance_rmse(res, wrong, "specular"), specular_limits(wrong)
+    assert any(r > lim for r, lim in zip(rmse, limits)), \
+        f"r^2 went unnoticed: RMSE {_rounded(rmse)}, limits {_rounded(limits)}"

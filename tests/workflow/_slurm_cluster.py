@@ -101,9 +101,10 @@ def make_tiny_capture(folder: Path, seed: int, views: int = 6, width: int = 64,
     make_capture(folder, SynthSettings(n_views=views, width=width, height=width * 3 // 4,
                                        format="exr", seed=seed, mesh_level=3, texture_size=64,
                                        write_cameras=True, write_masks=False))
-    cap = yaml.safe_load((folder / "capture.yaml").read_text()) or {}
+    yaml_path = folder / "capture.yaml"  # the generator writes one only where it states something
+    cap = (yaml.safe_load(yaml_path.read_text()) if yaml_path.exists() else None) or {}
     cap.update(json.loads(json.dumps(settings if settings is not None else TINY_SETTINGS)))
-    (folder / "capture.yaml").write_text(yaml.safe_dump(cap, sort_keys=False))
+    yaml_path.write_text(yaml.safe_dump(cap, sort_keys=False))
     return folder
 
 
