@@ -111,7 +111,7 @@ def build_gbuffer(mesh: Mesh, cameras: list[Camera] | tuple[Camera, ...], spp: i
                    cat(pos_all, np.float32, (0, 3)), cat(nrm_all, np.float32, (0, 3)))
 
 
-def _lookup(tex: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+def lookup(tex: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
     """Bilinear lookup, clamped to the edge texels: (T, T, C) map at (1, 1, N, 2) -> (N, C)."""
     if tex.shape[0] == 1 and tex.shape[1] == 1:  # uniform
         return tex.reshape(1, -1).expand(grid.shape[2], -1)
@@ -122,9 +122,9 @@ def _lookup(tex: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
 
 def radiance(gb: GBuffer, grid: torch.Tensor, diffuse, specular, roughness, light: float, r_min: float):
     """(N, 3) radiance of the samples (DESIGN section 3, collocated), see :func:`shade`."""
-    f = _lookup(diffuse, grid) * (1.0 / np.pi)
+    f = lookup(diffuse, grid) * (1.0 / np.pi)
     if specular is not None:
-        alpha = _lookup(roughness, grid).clamp(min=r_min, max=1.0) ** 2
+        alpha = lookup(roughness, grid).clamp(min=r_min, max=1.0) ** 2
         mu = gb.mu[:, None]
         a2 = alpha * alpha
         mu2 = mu * mu
@@ -132,7 +132,7 @@ def radiance(gb: GBuffer, grid: torch.Tensor, diffuse, specular, roughness, ligh
         # at r_min (float32: 1 - 1 + 1.6e-7 would lose the peak of D by ~20 %)
         dd = (1 - mu) * (1 + mu) + mu2 * a2
         g = mu + torch.sqrt(a2 + (1 - a2) * mu2)  # 2 mu / G1(mu)
-        f = f + _lookup(specular, grid) * (a2 / (np.pi * (dd * g) ** 2))
+        f = f + lookup(specular, grid) * (a2 / (np.pi * (dd * g) ** 2))
     return f * (light * gb.mu * gb.inv_d2)[:, None]
 
 

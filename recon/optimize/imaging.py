@@ -62,8 +62,9 @@ import numpy as np
 import torch
 
 from recon.optimize import objective
-from recon.optimize.gbuffer import GBuffer, _lookup, build_gbuffer, radiance
-from recon.optimize.material import Fit, MaterialModel, SelectionSettings, _Params, _Problem, compare
+from recon.optimize.gbuffer import GBuffer, build_gbuffer, lookup, radiance
+from recon.optimize.material import (Fit, MaterialModel, MaterialParams, MaterialProblem, SelectionSettings,
+                                     compare)
 from recon.optimize.views import ViewSet
 
 log = logging.getLogger(__name__)
@@ -177,17 +178,17 @@ def radiance_offset(gb: GBuffer, grid: torch.Tensor, view: torch.Tensor, light_p
     v = v / v.norm(dim=1, keepdim=True).clamp(min=1e-20)
     nl = (n * l).sum(1).clamp(min=0.0)
     nv = (n * v).sum(1).clamp(min=0.0)
-    f = _lookup(diffuse, grid) * (1.0 / np.pi)
+    f = lookup(diffuse, grid) * (1.0 / np.pi)
     if specular is not None:
         h = l + v
         h = h / h.norm(dim=1, keepdim=True).clamp(min=1e-20)
         nh = (n * h).sum(1).clamp(min=0.0, max=1.0)[:, None]
         vh = (v * h).sum(1).clamp(min=0.0, max=1.0)[:, None]
-        alpha = _lookup(roughness, grid).clamp(min=r_min, max=1.0) ** 2
+        alpha = lookup(roughness, grid).clamp(min=r_min, max=1.0) ** 2
         a2 = alpha * alpha
         dd = (1 - nh) * (1 + nh) + nh * nh * a2
         D = a2 / (np.pi * dd * dd)
-        a_s = _lookup(specular, grid)
+        a_s = lookup(specular, grid)
         F = a_s + (1 - a_s) * (1 - vh) ** 5
         # G1(c) / (2c) = 1 / (c + sqrt(a2 + (1 - a2) c^2)): finite as the cosines go to 0
         gl = 1.0 / (nl[:, None] + torch.sqrt(a2 + (1 - a2) * nl[:, None] ** 2))
@@ -346,9 +347,9 @@ def _camera_arrays(cameras) -> tuple[torch.Tensor, torch.Tensor]:
     return R, o
 
 
-class ImagingProblem(_Problem):
+class ImagingProblem(MaterialProblem):
     """A G-buffer and its targets (the kept pixels as in the material fits,
-    :class:`recon.optimize.material._Problem`) with the per-pixel data the imaging terms need:
+    :class:`recon.optimize.material.MaterialProblem`) with the per-pixel data the imaging terms need:
     view index, squared image radius, checkerboard tile colour, and the recorded exposure of the
     pixel's view relative to the reference (``exposure``: image stem -> h_k / h_ref as linearize
     recorded it, :func:`recorded_exposures`; views not in it, or None, at 1): the tone curve acts
@@ -385,9 +386,9 @@ class ImagingProblem(_Problem):
             rad = radiance_offset(self.gb, self.grid, self.sample_view, light_pos, self.o, d, sp, ro, light, r_min)
         A = im.ambient()
         if A is not None:
-            refl = _lookup(d, self.grid)
+            refl = lookup(d, self.grid)
             if sp is not None:
-                refl = refl + _lookup(sp, self.grid)
+                refl = refl + lookup(sp, self.grid)
             rad = rad + A * refl
         out = torch.zeros((len(self.pixels), 3), dtype=rad.dtype).index_add(0, self.sample_pixel, rad) / self.gb.spp
         g = im.gains()
@@ -450,7 +451,7 @@ def fit_imaging(model: ImagingModel, material: MaterialModel, prob: ImagingProbl
     """Fit the material maps of ``material`` and the imaging terms of ``model`` to the training
     views of ``prob`` (full batch, Adam, the material fits' priors and schedule)."""
     t0 = time.perf_counter()
-    P = _Params(material, init_maps, covered, s)
+    P = MaterialParams(material, init_maps, covered, s)
     n_views = prob.shape[0]
     ip = ImagingParams(model, n_views, length, tone_scale, offset_given, im.tone_knots, tone_gain=im.tone_gain)
     if init_params is not None:

@@ -108,7 +108,7 @@ def _steps(m: MaterialModel):
 
 
 # ---------------------------------------------------------------------- the fit's problem
-class _Problem:
+class MaterialProblem:
     """A G-buffer and its targets restricted to the pixels that can carry loss (object in the
     photo or surface in the render); the loss is still the mean over every pixel of every view."""
 
@@ -179,7 +179,7 @@ def _covered_mean(m: np.ndarray, covered: np.ndarray) -> np.ndarray:
     return sel.reshape(-1, m.shape[-1]).mean(0)
 
 
-class _Params:
+class MaterialParams:
     """The raw parameters of one candidate and their values as maps."""
 
     def __init__(self, model: MaterialModel, init: dict, covered: np.ndarray, s: SelectionSettings):
@@ -236,11 +236,12 @@ class _Params:
 
 
 def fit_model(model: MaterialModel, gb: GBuffer, targets: ViewSet, init: dict, covered: np.ndarray,
-              light: float, tone_scale: float, s: SelectionSettings, problem: _Problem | None = None) -> Fit:
+              light: float, tone_scale: float, s: SelectionSettings,
+              problem: MaterialProblem | None = None) -> Fit:
     """Fit the maps of ``model`` to the training views (full batch, Adam); return the maps."""
     t0 = time.perf_counter()
-    prob = problem if problem is not None else _Problem(gb, targets, s.tone_map, tone_scale)
-    P = _Params(model, init, covered, s)
+    prob = problem if problem is not None else MaterialProblem(gb, targets, s.tone_map, tone_scale)
+    P = MaterialParams(model, init, covered, s)
     opt = torch.optim.Adam(P.parameters(), lr=s.lr)
     valid = torch.from_numpy(covered)
     loss = torch.tensor(float("nan"))
@@ -268,7 +269,7 @@ def tile_errors(maps: dict, model: MaterialModel, gb: GBuffer, targets: ViewSet,
                 s: SelectionSettings) -> np.ndarray:
     """Mean loss per image tile (``s.tile`` pixels square) of the views; NaN where a tile has no
     unclipped pixel of either the object or the render."""
-    prob = _Problem(gb, targets, s.tone_map, tone_scale)
+    prob = MaterialProblem(gb, targets, s.tone_map, tone_scale)
     with torch.no_grad():
         spec = None if model.specular == "none" else torch.tensor(np.asarray(maps["specular"], dtype=np.float32))
         rad = prob.render(torch.tensor(np.asarray(maps["diffuse"], dtype=np.float32)), spec,
@@ -368,7 +369,7 @@ def select_material(mesh: Mesh, init_maps: dict, covered: np.ndarray, train: Vie
     if scorer is None:
         gb_train = build_gbuffer(mesh, list(train.cameras), spp, seed)
         gb_held = build_gbuffer(mesh, list(heldout.cameras), spp, seed + 1)
-        problem = _Problem(gb_train, train, s.tone_map, tone_scale)
+        problem = MaterialProblem(gb_train, train, s.tone_map, tone_scale)
 
         def scorer(model: MaterialModel, init: dict) -> Fit:
             fit = fit_model(model, gb_train, train, init, covered, light, tone_scale, s, problem)
@@ -452,5 +453,6 @@ def select_on_known_mesh(mesh: Mesh, train: ViewSet, heldout: ViewSet, light: fl
              "roughness": np.full((T, T, 1), 0.4, np.float32)}
     gb = build_gbuffer(mesh, list(train.cameras), spp, 0)
     full = fit_model(MaterialModel(), gb, train, const, covered, light, tone_scale,
-                     dataclasses.replace(s, iterations=int(full_iterations)), _Problem(gb, train, s.tone_map, tone_scale))
+                     dataclasses.replace(s, iterations=int(full_iterations)),
+                     MaterialProblem(gb, train, s.tone_map, tone_scale))
     return select_material(mesh, full.maps, covered, train, heldout, light, tone_scale, s, spp=spp, progress=progress)
