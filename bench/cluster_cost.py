@@ -25,8 +25,10 @@ import sys
 import time
 from pathlib import Path
 
+from recon.stages import SETTINGS_STAGES
+
 REPO = Path(__file__).resolve().parents[1]
-STAGES = ("linearize", "masks", "poses", "init_mesh", "uv", "optimize", "export", "report")
+STAGES = SETTINGS_STAGES  # the stages that run a job of their own per capture (check aside)
 BASE = {"views": 16, "width": 128}
 VIEWS = (8, 16, 32)
 WIDTHS = (64, 128, 256)

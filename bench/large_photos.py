@@ -31,8 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
+from recon.stages import NAMES
+
 REPO = Path(__file__).resolve().parent.parent
-STAGES = ("check", "linearize", "masks", "poses", "init_mesh", "uv", "optimize", "export", "report")
+STAGES = NAMES
 
 
 def make_capture(captures: Path) -> Path:

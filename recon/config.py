@@ -27,8 +27,10 @@ from pathlib import Path
 import yaml
 
 from recon.io.images import IMAGE_EXTENSIONS
+from recon.stages import GPU_STAGES, SETTINGS_STAGES
 
-STAGES = ("linearize", "masks", "poses", "init_mesh", "uv", "optimize", "export", "report")
+STAGES = SETTINGS_STAGES
+"""The stages with a settings section, in pipeline order (:data:`recon.stages.STAGES`)."""
 PRESETS = ("draft", "balanced", "accurate")
 CAPTURE_KEYS = ("preset", "light_intensity") + STAGES
 DEFAULT_PRESETS_DIR = Path(__file__).resolve().parents[1] / "config" / "presets"
@@ -151,7 +153,7 @@ def job_settings(stage: str, job, presets_dir: str | os.PathLike | None = None) 
     ``job`` is the ``snakemake`` object Snakemake injects into a rule's script (duck-typed: its
     ``config["captures"]``, ``config["preset"]`` and ``wildcards.capture``; ``recon`` never
     imports Snakemake). The values equal the rule's tracked ``params.settings``; the sources
-    name the files in error messages. One addition: a job of a :data:`GPU_STAGES` stage whose
+    name the files in error messages. One addition: a job of a GPU stage (:data:`recon.stages.GPU_STAGES`) whose
     resources request a GPU (:func:`job_variant`) renders with ``cuda_ad_rgb`` unless its
     settings name a variant (not tracked: the device is where a job runs, not a setting).
     """
@@ -161,10 +163,6 @@ def job_settings(stage: str, job, presets_dir: str | os.PathLike | None = None) 
     if stage in GPU_STAGES and variant and not settings.get("variant"):
         settings["variant"] = variant
     return settings
-
-
-GPU_STAGES = ("optimize",)
-"""Stages that render on a GPU when their job was given one (profiles/slurm: ``gpu``/``gres``)."""
 
 
 def job_variant(resources) -> str | None:

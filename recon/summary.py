@@ -26,10 +26,12 @@ import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from recon.stages import FINAL, NAMES
+
 log = logging.getLogger(__name__)
 
-STAGES = ("check", "linearize", "masks", "poses", "init_mesh", "uv", "optimize", "export", "report")
-"""The stages in pipeline order (the rules of workflow/rules/, DESIGN section 2)."""
+STAGES = NAMES
+"""The stages in pipeline order (:data:`recon.stages.STAGES`, the rules of workflow/rules/)."""
 
 # slurmstepd's line in a job's output when SLURM ends it: "*** JOB 12 ON node CANCELLED AT
 # 2026-11-24T15:01:02 DUE TO TIME LIMIT ***" (scancel: "... CANCELLED AT ... ***").
@@ -72,7 +74,8 @@ def _slurm_logs(slurm_log_dir: Path | None, stage: str, capture: str) -> list[Pa
     if slurm_log_dir is None or not slurm_log_dir.is_dir():
         return []
     found = list(slurm_log_dir.glob(f"rule_{stage}/{capture}/*.log"))
-    # a group job's log (profiles/slurm groups stages) sits in group_<name>/ without the capture
+    # a group job's log (profiles/slurm groups stages: recon.stages) sits in group_<name>/ without
+    # the capture
     for path in slurm_log_dir.glob("group_*/**/*.log"):
         text = path.read_text(errors="replace")
         if f"rule {stage}:" in text and f"wildcards: capture={capture}\n" in text:
@@ -110,7 +113,7 @@ def capture_status(results: str | os.PathLike, capture: str,
     """The :class:`CaptureStatus` of ``capture`` from its files under ``results``."""
     root = Path(results) / capture
     done = [s for s in STAGES if (root / "benchmarks" / f"{s}.tsv").is_file()]
-    if (root / "report" / "index.html").is_file() and "report" in done:
+    if (root / FINAL.output("html")).is_file() and FINAL.name in done:
         return CaptureStatus(capture, "finished", done, log=str(root / "report" / "index.html"))
     slurm_dir = Path(slurm_log_dir) if slurm_log_dir else None
     for stage in STAGES:  # the first stage that has a log but did not finish

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.config import STAGES, ConfigError, build_settings, read_capture_yaml, stage_settings
+from recon.config import ConfigError, build_settings, read_capture_yaml, stage_settings
 from recon.export import ExportSettings
 from recon.init_mesh import InitMeshError, InitMeshSettings, check_closed_manifold
 from recon.io.atomic import atomic_path
@@ -61,6 +61,7 @@ from recon.masks import MaskSettings
 from recon.optimize.settings import settings_from_dict
 from recon.poses import PoseSettings
 from recon.report import ReportSettings
+from recon.stages import SETTINGS_STAGES
 from recon.uv import UVSettings
 
 log = logging.getLogger(__name__)
@@ -159,7 +160,7 @@ def _check_settings(capture_dir: Path, preset: str, presets_dir, found: _Finding
         found.errors.append(str(e))
         return {}
     built = {}
-    for stage in STAGES:
+    for stage in SETTINGS_STAGES:
         try:
             built[stage] = _BUILDERS[stage](stage_settings(stage, preset, capture_dir, presets_dir))
         except ConfigError as e:

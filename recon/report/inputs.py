@@ -31,6 +31,7 @@ import numpy as np
 
 from recon.io.images import ImageError, read_texture_map
 from recon.io.mesh import Mesh, MeshError, read_mesh
+from recon.stages import NAMES as STAGE_NAMES
 
 log = logging.getLogger(__name__)
 
@@ -305,12 +306,14 @@ def read_benchmarks(folder: str | os.PathLike | None) -> dict[str, float]:
     """Wall seconds per stage from Snakemake benchmark files ``<folder>/<stage>.tsv``.
 
     A benchmark TSV has a header with an ``s`` column and one row per repeat; the mean over
-    repeats is returned. Unreadable files are skipped with a warning.
+    repeats is returned, the stages in pipeline order (:data:`recon.stages.STAGES`; files of
+    other names after them, by name). Unreadable files are skipped with a warning.
     """
     if folder is None or not Path(folder).is_dir():
         return {}
     out = {}
-    for path in sorted(Path(folder).glob("*.tsv")):
+    order = {name: k for k, name in enumerate(STAGE_NAMES)}
+    for path in sorted(Path(folder).glob("*.tsv"), key=lambda p: (order.get(p.stem, len(order)), p.name)):
         try:
             with open(path, newline="") as f:
                 rows = list(csv.DictReader(f, delimiter="\t"))

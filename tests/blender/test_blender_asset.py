@@ -401,9 +401,9 @@ def test_specular_lobe_matches_recon(result, recon_renders):
     rmse, limits = appearance_rmse(res, refs, "specular"), specular_limits(refs)
     said = f"specular-only sRGB RMSE per view {_rounded(rmse)}, limits {_rounded(limits)}"
     if fmt == "usdz" and not fixed:  # Blender's USD importer: F0 = 0.04 a_s, the lobe is lost
-        assert all(r > lim for r, lim in zip(rmse, limits)), f"usdz: the known weak specular is gone: {said}"
+        assert all(r > lim for r, lim in zip(rmse, limits, strict=True)), f"usdz: the known weak specular is gone: {said}"
         return
-    assert all(r < lim for r, lim in zip(rmse, limits)), f"{fmt}{' (fixed)' if fixed else ''}: {said}"
+    assert all(r < lim for r, lim in zip(rmse, limits, strict=True)), f"{fmt}{' (fixed)' if fixed else ''}: {said}"
 
 
 def test_appearance_check_detects_a_roughness_error(blender):
@@ -412,5 +412,5 @@ def test_appearance_check_detects_a_roughness_error(blender):
     res = blender("glb")
     wrong = _recon_renders(res, "specular", roughness=res.asset.r ** 2)
     rmse, limits = appearance_rmse(res, wrong, "specular"), specular_limits(wrong)
-    assert any(r > lim for r, lim in zip(rmse, limits)), \
+    assert any(r > lim for r, lim in zip(rmse, limits, strict=True)), \
         f"r^2 went unnoticed: RMSE {_rounded(rmse)}, limits {_rounded(limits)}"

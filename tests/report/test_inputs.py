@@ -113,6 +113,13 @@ def test_read_benchmarks(tmp_path):
     assert read_benchmarks(None) == {}
 
 
+def test_read_benchmarks_in_pipeline_order(tmp_path):
+    """The stages in the order of recon.stages (optimize before poses by name), others after."""
+    for name in ("optimize", "poses", "extra", "check"):
+        report_scene.write_tsv(tmp_path / f"{name}.tsv", [1.0])
+    assert list(read_benchmarks(tmp_path)) == ["check", "poses", "optimize", "extra"]
+
+
 def test_read_model_round_trip(scene):
     m = read_model(scene.optimize)
     np.testing.assert_array_equal(m.diffuse, scene.textures["diffuse"])

@@ -5,6 +5,7 @@ from pathlib import Path
 import recon.config as rc
 from recon.runlock import RunLockError, lock_results
 from recon.io.images import IMAGE_EXTENSIONS
+from recon.stages import FINAL
 from recon.summary import write_run_summary
 
 RESULTS = config["results"]
@@ -150,8 +151,9 @@ def get_capture_dir(wildcards):
 
 
 def get_all_targets(wildcards):
-    """The report of every capture (it needs every other stage's outputs)."""
-    return [f"{RESULTS}/{capture}/report/index.html" for capture in CAPTURES]
+    """The report of every capture (the last stage of recon.stages: it needs every other
+    stage's outputs)."""
+    return [f"{RESULTS}/{capture}/{FINAL.output('html')}" for capture in CAPTURES]
 
 
 # ---- Input functions of the geometry stages (given files skip the stages that make them) ----
