@@ -48,7 +48,7 @@ from recon.io.mesh import Mesh, read_mesh  # noqa: E402
 from recon.metrics import align_cameras  # noqa: E402
 from recon.optimize import objective, settings_from_dict  # noqa: E402
 from recon.optimize.camera_refine import CameraRefinement, scene_extent  # noqa: E402
-from recon.optimize.imaging import LoopImaging  # noqa: E402
+from recon.optimize.loop_imaging import LoopImaging  # noqa: E402
 from recon.optimize.loop import align_views  # noqa: E402
 from recon.optimize.tracks import SfmTracks, TrackTerm  # noqa: E402
 from recon.poses.frame import rotate_cameras  # noqa: E402

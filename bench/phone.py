@@ -9,7 +9,7 @@ this measures the imaging model, not the shape) fits
 - the material model (textured mono specular, uniform roughness, 150 Adam steps) as the start,
 - "not modelled": the ideal image formation refitted (``ImagingModel(())``),
 - "modelled": the effect's term(s) fitted with the maps (``phone``: every term),
-- the held-out selection of ``recon.optimize.imaging.select_imaging`` (which terms it keeps,
+- the held-out selection of ``recon.optimize.imaging_select.select_imaging`` (which terms it keeps,
   with gain and SE),
 
 and reports per case: held-out error (the selection's metric), held-out sRGB RMSE (DESIGN 5, on
@@ -41,12 +41,12 @@ from recon.io.images import read_exr  # noqa: E402
 from recon.io.mesh import read_obj  # noqa: E402
 from recon.linearize.stage import linearize_capture  # noqa: E402
 from recon.optimize.gbuffer import build_gbuffer  # noqa: E402
-from recon.optimize.imaging import (  # noqa: E402
-    TERMS, ImagingModel, ImagingProblem, ImagingSettings, falloff, fit_imaging, heldout_tiles, recorded_exposures,
-    select_imaging, srgb_encode)
+from recon.optimize.formation import TERMS, ImagingModel, falloff, srgb_encode  # noqa: E402
+from recon.optimize.imaging import ImagingProblem, ImagingSettings, fit_imaging, heldout_tiles  # noqa: E402
+from recon.optimize.imaging_select import select_imaging  # noqa: E402
 from recon.optimize.material import MaterialModel, SelectionSettings, fit_model  # noqa: E402
 from recon.optimize.remesh import rasterize_atlas  # noqa: E402
-from recon.optimize.views import Views  # noqa: E402
+from recon.optimize.views import Views, recorded_exposures  # noqa: E402
 from recon.synth.capture import SynthSettings, make_capture  # noqa: E402
 from recon.synth.imaging import linearized_tone  # noqa: E402
 

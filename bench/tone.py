@@ -65,7 +65,7 @@ def prepare(root: Path, curve: str, args) -> Path:
     from recon.io.mesh import read_obj
     from recon.linearize.stage import linearize_capture
     from recon.optimize.gbuffer import build_gbuffer
-    from recon.optimize.imaging import recorded_exposures
+    from recon.optimize.views import recorded_exposures
     from recon.optimize.remesh import rasterize_atlas
     from recon.optimize.views import Views
     from recon.synth.capture import SynthSettings, make_capture
@@ -124,7 +124,7 @@ def problems(d: dict, exposure: bool, s):
 def curve_error(fit, prob, true_curve: str, light: float, r_min: float = 0.02) -> dict:
     """The fitted curve against the truth up to the scale gauge (module docstring); also the
     error of no curve at all (the sRGB decoding alone) over the same values."""
-    from recon.optimize.imaging import ImagingModel, _encode_ext
+    from recon.optimize.formation import ImagingModel, srgb_encode_ext
     from recon.synth.imaging import tone_encode
 
     p = fit.params
@@ -139,7 +139,7 @@ def curve_error(fit, prob, true_curve: str, light: float, r_min: float = 0.02) -
     lo, hi = np.percentile(yv[yv > 0], [1, 99.5])
     x = torch.tensor(np.geomspace(lo, hi, 200), dtype=torch.float32)
     with torch.no_grad():
-        fitted = _encode_ext(p.tone(x)).numpy() if p.model.has("tone") else _encode_ext(x).numpy()
+        fitted = srgb_encode_ext(p.tone(x)).numpy() if p.model.has("tone") else srgb_encode_ext(x).numpy()
     scales = np.geomspace(0.2, 5.0, 801)
     errs = np.array([np.abs(fitted - tone_encode(x.numpy() * s, true_curve)).max() for s in scales])
     k = int(np.argmin(errs))
@@ -153,7 +153,8 @@ def gain_error(d: dict, fit) -> float:
 
 
 def run_curve(path: Path, args) -> dict:
-    from recon.optimize.imaging import ImagingModel, ImagingSettings, fit_imaging, heldout_tiles_under
+    from recon.optimize.formation import ImagingModel
+    from recon.optimize.imaging import ImagingSettings, fit_imaging, heldout_tiles_under
     from recon.optimize.material import MaterialModel, SelectionSettings, compare
 
     d = torch.load(path, weights_only=False)

@@ -1,5 +1,6 @@
-"""The G-buffer renderer of the material fits: surface samples of fixed views of a fixed mesh,
-shaded in torch with the collocated model (DESIGN section 3; one of the model's four
+"""The G-buffer renderer of the material and imaging fits: surface samples of fixed views of a
+fixed mesh, shaded in torch with the collocated model (:func:`radiance`) or the general model for
+a flash beside the lens (:func:`radiance_offset`) of DESIGN section 3 (two of the model's
 implementations listed in :mod:`recon.brdf`).
 
 With the mesh fixed, visibility never changes, so each view is traced once (open3d) and the fits
@@ -29,7 +30,7 @@ class GBuffer:
     spp : samples per pixel (misses contribute zero)
     shape : (views, h, w)
     position, normal : (N, 3) float32 surface point and shading normal (world), for shading with
-        a light away from the camera (:mod:`recon.optimize.imaging`)
+        a light away from the camera (:func:`radiance_offset`)
     """
 
     pixel: torch.Tensor
@@ -134,6 +135,38 @@ def radiance(gb: GBuffer, grid: torch.Tensor, diffuse, specular, roughness, ligh
         g = mu + torch.sqrt(a2 + (1 - a2) * mu2)  # 2 mu / G1(mu)
         f = f + lookup(specular, grid) * (a2 / (np.pi * (dd * g) ** 2))
     return f * (light * gb.mu * gb.inv_d2)[:, None]
+
+
+def radiance_offset(gb: GBuffer, grid: torch.Tensor, view: torch.Tensor, light_pos: torch.Tensor,
+                    centers: torch.Tensor, diffuse, specular, roughness, light: float, r_min: float):
+    """(N, 3) radiance of the samples lit by point lights at ``light_pos[view]`` (V, 3), seen from
+    ``centers[view]``: the general model of DESIGN section 3 (front side only), for a flash beside
+    the lens (:mod:`recon.optimize.formation`). Needs the G-buffer's positions and normals."""
+    y, n = gb.position.to(light_pos.dtype), gb.normal.to(light_pos.dtype)
+    lv = light_pos[view] - y
+    d2 = (lv * lv).sum(1).clamp(min=1e-20)
+    l = lv * torch.rsqrt(d2)[:, None]  # noqa: E741
+    v = centers[view].to(y.dtype) - y
+    v = v / v.norm(dim=1, keepdim=True).clamp(min=1e-20)
+    nl = (n * l).sum(1).clamp(min=0.0)
+    nv = (n * v).sum(1).clamp(min=0.0)
+    f = lookup(diffuse, grid) * (1.0 / np.pi)
+    if specular is not None:
+        h = l + v
+        h = h / h.norm(dim=1, keepdim=True).clamp(min=1e-20)
+        nh = (n * h).sum(1).clamp(min=0.0, max=1.0)[:, None]
+        vh = (v * h).sum(1).clamp(min=0.0, max=1.0)[:, None]
+        alpha = lookup(roughness, grid).clamp(min=r_min, max=1.0) ** 2
+        a2 = alpha * alpha
+        dd = (1 - nh) * (1 + nh) + nh * nh * a2
+        D = a2 / (np.pi * dd * dd)
+        a_s = lookup(specular, grid)
+        F = a_s + (1 - a_s) * (1 - vh) ** 5
+        # G1(c) / (2c) = 1 / (c + sqrt(a2 + (1 - a2) c^2)): finite as the cosines go to 0
+        gl = 1.0 / (nl[:, None] + torch.sqrt(a2 + (1 - a2) * nl[:, None] ** 2))
+        gv = 1.0 / (nv[:, None] + torch.sqrt(a2 + (1 - a2) * nv[:, None] ** 2))
+        f = f + D * F * gl * gv * (nv[:, None] > 0)
+    return f * (light * nl / d2)[:, None] * (nv > 0)[:, None]
 
 
 def shade(gb: GBuffer, diffuse: torch.Tensor, specular: torch.Tensor | None, roughness: torch.Tensor,

@@ -55,16 +55,18 @@ from recon.optimize.radiometry import (ESTIMATE_SIZE, CollapseError, LightScale,
 from recon.optimize.guard import SurfaceGuard, self_intersecting_faces
 from recon.optimize.largesteps import AdamUniform, LargeSteps
 from recon.optimize.gbuffer import build_gbuffer
-from recon.optimize.imaging import (ImagingModel, ImagingParams, ImagingProblem, ImagingSettings, LoopImaging,
-                                    capture_is_ldr, heldout_tiles_under, material_scorer_under, recorded_exposures,
-                                    refit_under, run_imaging_selection, view_exposures,
-                                    select_for_loop)
+from recon.optimize.formation import ImagingModel, ImagingParams
+from recon.optimize.imaging import (ImagingProblem, ImagingSettings, heldout_tiles_under, material_scorer_under,
+                                    refit_under)
+from recon.optimize.imaging_select import run_imaging_selection, select_for_loop
+from recon.optimize.loop_imaging import LoopImaging
 from recon.optimize.material import compare, heldout_error, model_from_settings, select_material
 from recon.optimize.tracks import TrackTerm
 from recon.optimize.params import TexturePyramid, albedo_param, constant_map, roughness_param
 from recon.optimize.remesh import rasterize_atlas, remesh, remesh_and_rebake, topology_report, unwrap
 from recon.optimize.settings import OptimizeSettings, StageSettings
-from recon.optimize.views import Views, ViewSet, pixel_footprint
+from recon.optimize.views import (Views, ViewSet, capture_is_ldr, pixel_footprint, recorded_exposures,
+                                  view_exposures)
 from recon.render import CollocatedRenderer, RenderSettings
 from recon.support import PlaneError, SupportPlane, plane_if_found
 
@@ -780,7 +782,7 @@ def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], sett
     cameras' extent). ``tracks``: SfM's tracks of these views and the views' cameras at the
     photos' size, reprojected through the aligned cameras as a second term (weight
     ``weights["tracks"]``; :mod:`recon.optimize.tracks`). ``exposure``: stem -> recorded exposure
-    (:func:`recon.optimize.imaging.recorded_exposures`), where the tone curve acts."""
+    (:func:`recon.optimize.views.recorded_exposures`), where the tone curve acts."""
     ali = CameraRefinement(cameras, settings.camera_prior(), intrinsics=False, gauge=False, scene_size=scene_size)
     idx = list(range(len(cameras)))
     im_settings = ImagingSettings()
@@ -997,7 +999,7 @@ def _check_collapse(run: _Run, mesh: Mesh, st: _Stage, si: int) -> dict:
 
 def _select_loop_imaging(run: _Run, mesh: Mesh, maps: dict, covered: np.ndarray, si: int) -> None:
     """``imaging_loop: select``: the imaging selection on stage ``si``'s model; the later stages
-    optimize under the chosen terms (:class:`recon.optimize.imaging.LoopImaging`)."""
+    optimize under the chosen terms (:class:`recon.optimize.loop_imaging.LoopImaging`)."""
     settings = run.settings
     size = int(settings.select_image_size)
     train_vs, held_vs = run.views.at(size), run.heldout.at(size)

@@ -164,7 +164,8 @@ class OptimizeSettings:
     ``imaging_loop_stage`` + 1, when ``imaging_loop`` is on and there are held-out views to
     choose them (before a phone's auto-exposure and tone curve are modelled the refinement
     explains a view's exposure by its distance, the flash being at the lens), else 0).
-    The camera's imaging (:mod:`recon.optimize.imaging`, DESIGN section 6): ``select_imaging``
+    The camera's imaging (:mod:`recon.optimize.formation`, DESIGN section 7; chosen in
+    :mod:`recon.optimize.imaging_select`): ``select_imaging``
     (after the material model, on the same held-out views) tries the terms of ``imaging_terms``
     (flash_offset, exposure, ambient, falloff, tone) and keeps each only where it pays off the
     same way; ``tone`` is tried only for JPEG/PNG captures (``tone_curve: auto`` reads the
@@ -266,7 +267,7 @@ class OptimizeSettings:
         object.__setattr__(self, "stages", stages)
         object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
         object.__setattr__(self, "imaging_terms", tuple(self.imaging_terms))
-        from recon.optimize.imaging import TERMS as IMAGING_TERMS
+        from recon.optimize.formation import TERMS as IMAGING_TERMS
 
         if set(self.imaging_terms) - set(IMAGING_TERMS):
             raise ValueError(f"imaging_terms must be a subset of {IMAGING_TERMS}, got {self.imaging_terms!r}")

@@ -14,6 +14,7 @@ multiplied by the mask, since that would hide where the surface spills over the 
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 from dataclasses import dataclass
@@ -182,3 +183,58 @@ def pixel_footprint(cameras, point) -> float:
         if depth > 0:
             vals.append(depth / np.sqrt(K[0, 0] * K[1, 1]))
     return float(np.median(vals)) if vals else 0.0
+
+
+# ---------------------------------------------------------------------- what linearize recorded
+def _linear_record(images) -> dict | None:
+    """The linearize stage's ``linear.json`` of the photos ``images`` (beside them, or in
+    ``linear/`` of the same results folder for ``poses/undistorted``); None when not found or
+    unreadable."""
+    if not images:
+        return None
+    d = Path(images[0]).parent
+    for cand in (d / "linear.json", d.parent.parent / "linear" / "linear.json"):
+        if cand.is_file():
+            try:
+                return json.loads(cand.read_text())
+            except (OSError, ValueError):
+                return None
+    return None
+
+
+def capture_is_ldr(images) -> bool | None:
+    """Whether the linearize stage read JPEG/PNG photos (its ``linear.json`` beside the views, or
+    in ``linear/`` of the same results folder for ``poses/undistorted``); None when not found."""
+    info = _linear_record(images)
+    if info is None:
+        return None
+    kinds = {v.get("kind") for v in info.get("images", {}).values() if isinstance(v, dict)}
+    return kinds == {"ldr"} if kinds else None
+
+
+def recorded_exposures(images) -> dict | None:
+    """Image stem -> the exposure linearize divided out (h_k / h_ref = 1 / ``exposure_scale`` of
+    its ``linear.json``, found as :func:`capture_is_ldr` finds it), or None when not found or
+    every view was taken at the reference exposure. A phone's auto-exposure changes the recorded
+    exposure from shot to shot, and its tone curve acts before linearize divides it out
+    (:mod:`recon.optimize.formation`)."""
+    info = _linear_record(images)
+    if info is None:
+        return None
+    out = {}
+    for stem, v in info.get("images", {}).items():
+        sc = v.get("exposure_scale") if isinstance(v, dict) else None
+        if isinstance(sc, (int, float)) and np.isfinite(sc) and sc > 0:
+            out[str(stem)] = 1.0 / float(sc)
+    return out if out and any(abs(e - 1.0) > 1e-9 for e in out.values()) else None
+
+
+def view_exposures(cameras, exposure: dict | None) -> torch.Tensor | None:
+    """(V,) recorded exposures of ``cameras`` (by image stem) relative to the reference, or None
+    when none is given or all are 1 (the tone curve then acts on the linearized values as they are)."""
+    if not exposure:
+        return None
+    e = np.array([float(exposure.get(getattr(c, "stem", None), 1.0)) for c in cameras], np.float64)
+    if not np.all(np.isfinite(e) & (e > 0)):
+        raise ValueError(f"recorded exposures must be finite and > 0, got {e}")
+    return None if np.all(e == 1.0) else torch.tensor(e, dtype=torch.float32)

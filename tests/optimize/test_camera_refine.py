@@ -139,7 +139,8 @@ def test_heldout_alignment_renders_the_loop_imaging(drjit_single_thread):
     float atomics in any order each step's gradients differ in the last bits, which 40 steps
     can amplify past any fixed tolerance."""
     from recon.io.mesh import Mesh
-    from recon.optimize.imaging import ImagingModel, ImagingParams, LoopImaging
+    from recon.optimize.formation import ImagingModel, ImagingParams
+    from recon.optimize.loop_imaging import LoopImaging
     from recon.optimize.loop import align_views
     from recon.optimize.settings import OptimizeSettings
     from recon.optimize.views import ViewSet

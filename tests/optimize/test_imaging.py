@@ -1,4 +1,5 @@
-"""The camera's imaging terms (recon/optimize/imaging.py): the offset-light shading against the
+"""The camera's imaging terms (recon/optimize/formation.py, their fits and selection in imaging.py and
+imaging_select.py): the offset-light shading (recon/optimize/gbuffer.py) against the
 reference BRDF and the collocated fast path, the terms at numerical extremes, and the selection
 on synthetic captures with and without an effect (recovered values against gt/imaging.json)."""
 
@@ -7,18 +8,17 @@ import pytest
 import torch
 
 from recon.brdf import eval_brdf
-from recon.optimize.gbuffer import GBuffer, radiance
-from recon.optimize.imaging import (
+from recon.optimize.formation import (
     FALLOFF_FLOOR,
     ImagingModel,
     ImagingParams,
     apply_tone,
     falloff,
-    radiance_offset,
     srgb_decode,
     srgb_encode,
     tone_knot_values,
 )
+from recon.optimize.gbuffer import GBuffer, radiance, radiance_offset
 
 R_MIN = 0.02
 
@@ -167,7 +167,7 @@ def _known_mesh(cap, size, held_every=4, gspp=4, iterations=150):
 
 
 def _select(p, candidates, iterations=100, gspp=4):
-    from recon.optimize.imaging import select_imaging
+    from recon.optimize.imaging_select import select_imaging
     from recon.optimize.material import SelectionSettings
 
     return select_imaging(p["mesh"], p["start"], p["covered"], p["train"], p["held"], p["light"], p["scale"],
@@ -318,7 +318,6 @@ def test_imaging_settings_validation():
 def _tone_error(p, params, scale: float = 1.0):
     """Max |srgb(h_fit(x)) - srgb(h_true(scale x))| over the linear values the object's pixels take
     (1st to 99th percentile of the training targets, mapped back through the true curve)."""
-    from recon.optimize.imaging import srgb_encode
     from recon.synth.imaging import linearized_tone
 
     tc = p["gt"]["tone_curve"]
@@ -357,7 +356,7 @@ def test_phone_tone_curve_kept_and_recovered(tmp_path):
 
 # ---------------------------------------------------------------------- inside the geometry loop
 def _loop_params(n_views=5):
-    from recon.optimize.imaging import LoopImaging
+    from recon.optimize.loop_imaging import LoopImaging
 
     p = ImagingParams(ImagingModel(("exposure", "falloff", "tone")), n_views, 1.0, 0.5)
     with torch.no_grad():
@@ -373,7 +372,8 @@ def test_loop_imaging_applies_the_terms_of_the_selection():
     """LoopImaging.apply is the selection's per-pixel model (ImagingProblem.render after the
     radiance): gain of the view, falloff at the pixel's radius (1 in the corners), tone curve;
     its state restores the same prediction; the offset/ambient go to the renderer."""
-    from recon.optimize.imaging import LoopImaging, image_radius2
+    from recon.optimize.formation import image_radius2
+    from recon.optimize.loop_imaging import LoopImaging
 
     loop, p = _loop_params()
     h, w = 6, 8
@@ -411,7 +411,7 @@ def test_loop_imaging_shared_with_the_control_run():
     """The camera refinement's paired runs: the refined run takes the control's imaging choice
     (same terms, the values as chosen, not as the control's loop refined them later; its own
     copy) instead of selecting again; without a choice to take it selects itself."""
-    from recon.optimize.imaging import LoopImaging
+    from recon.optimize.loop_imaging import LoopImaging
 
     control, p = _loop_params()
     chosen = {k: getattr(p, k).detach().clone() for k in ("log_gain", "falloff_k", "tone_raw")}

@@ -1,4 +1,4 @@
-"""The tone term of the imaging model (recon/optimize/imaging.py) against the generator's curves
+"""The tone term of the imaging model (recon/optimize/formation.py) against the generator's curves
 (recon/synth/imaging.py), which it does not share: the curve acts on what the camera recorded
 (before linearize divides the EXIF exposure out), its input scale is fitted, and the fitted curve
 reproduces the true one up to the scale gauge the albedo shares."""
@@ -7,15 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-from recon.optimize.imaging import (
+from recon.optimize.formation import (
     ImagingModel,
     ImagingParams,
-    _decode_ext,
-    _encode_ext,
     apply_tone,
-    recorded_exposures,
-    view_exposures,
+    srgb_decode_ext,
+    srgb_encode_ext,
 )
+from recon.optimize.views import recorded_exposures, view_exposures
 from recon.synth.imaging import TONE_CURVES, tone_encode, tone_white
 
 NOT_SRGB = ("gamma22", "filmic", "table", "toe_shoulder")
@@ -39,8 +38,8 @@ def test_generator_curves_monotone_white_and_not_srgb():
 
 def test_extended_srgb_pair_inverts_above_white():
     x = torch.linspace(0.0, 4.0, 401)
-    np.testing.assert_allclose(_decode_ext(_encode_ext(x)).numpy(), x.numpy(), rtol=1e-5, atol=1e-6)
-    assert torch.all(torch.diff(_encode_ext(x)) > 0)
+    np.testing.assert_allclose(srgb_decode_ext(srgb_encode_ext(x)).numpy(), x.numpy(), rtol=1e-5, atol=1e-6)
+    assert torch.all(torch.diff(srgb_encode_ext(x)) > 0)
 
 
 def test_apply_tone_input_gain_exposure_and_extension():
@@ -103,7 +102,7 @@ def _observations(curve: str, n_points=300, exposures=(0.8, 1.0, 1.25), jitter=0
     shade = rng.uniform(0.15, 1.0, (n_points, len(e)))
     u = a[:, None] * shade * g[None, :] * e[None, :]
     code = np.round(255 * tone_encode(u, curve)) / 255
-    lin = _decode_ext(torch.tensor(code)).numpy() / e[None, :]
+    lin = srgb_decode_ext(torch.tensor(code)).numpy() / e[None, :]
     w = (code < 254.5 / 255).astype(np.float64)
     return a, shade, g, e, lin, w
 
@@ -135,7 +134,7 @@ def _self_calibrate(shade, lin, w, e, with_exposure: bool, gain: bool = True, it
 def _curve_error(p, xs, curve):
     """max |H(srgb(c x)) - T(s x)| over ``xs`` at the best s (the scale gauge)."""
     with torch.no_grad():
-        fitted = _encode_ext(p.tone(torch.tensor(xs, dtype=torch.float32))).numpy()
+        fitted = srgb_encode_ext(p.tone(torch.tensor(xs, dtype=torch.float32))).numpy()
     return min(float(np.abs(fitted - tone_encode(xs * s, curve)).max()) for s in np.geomspace(0.3, 3.0, 400))
 
 
@@ -244,7 +243,7 @@ def _fit_on_true_mesh(root, curve: str) -> dict:
     xs = np.geomspace(*np.percentile(yv[yv > 0], [1, 99.5]), 200)
     out["curve_err"] = _curve_error(fit.params, xs, curve)
     with torch.no_grad():
-        ident = _encode_ext(torch.tensor(xs, dtype=torch.float32)).numpy()
+        ident = srgb_encode_ext(torch.tensor(xs, dtype=torch.float32)).numpy()
     out["identity_err"] = min(float(np.abs(ident - tone_encode(xs * s_, curve)).max())
                               for s_ in np.geomspace(0.3, 3.0, 400))
     return out
