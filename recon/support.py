@@ -79,6 +79,21 @@ class SupportPlane:
         below = h < 0
         return p - np.minimum(h, 0.0)[..., None] * self.normal, below
 
+    def resting(self, points: np.ndarray, normals: np.ndarray, tol: float) -> np.ndarray:
+        """(V,) bool: the vertices the object stands on, within ``tol`` of the plane with their
+        normal facing it (more than 60 degrees down). ``points, normals (V, 3)``."""
+        n = np.asarray(normals, dtype=np.float64) @ self.normal
+        return (self.height(points) < tol) & (n < -0.5)
+
+    def hold(self, points: np.ndarray, resting: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``points (V, 3)`` projected onto the constraint: the ``resting`` ones onto the plane
+        (they slide along it, never lift off), the others into the half-space above; and the
+        (V,) bool array of the points that moved."""
+        p = np.asarray(points, dtype=np.float64)
+        h = self.height(p)
+        dh = np.where(resting, h, np.minimum(h, 0.0))
+        return p - dh[..., None] * self.normal, dh != 0
+
     def ray_hit(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """Ray parameter t of ``origins + t * directions`` on the plane (inf where parallel)."""
         o = np.asarray(origins, dtype=np.float64)

@@ -145,3 +145,26 @@ def test_standing_points_leave_out_the_table():
     keep = standing_points(np.concatenate([table, obj]), plane, 0.02)
     assert not keep[:200].any() and keep[200:].all()
     assert standing_points(table, None, 0.02).all()  # no plane: every point counts
+
+
+def test_resting_base_is_held_on_the_plane():
+    """The base an object stands on (near the plane, facing it) is projected onto the plane in
+    both directions and slides along it; other points only into the half-space above; points
+    near the plane that face sideways or up are not the base. Tiny and huge scales alike."""
+    for s in (1e-3, 1.0, 1e3):
+        plane = SupportPlane(np.array([0.0, 0.0, 1.0]), -0.5 * s)  # z = 0.5 s
+        p = s * np.array([[0.0, 0.0, 0.51], [0.3, 0.1, 0.49], [1.0, 0.0, 0.505], [0.0, 1.0, 0.505],
+                          [0.0, 0.0, 2.0], [0.2, 0.2, 0.4]])
+        n = np.array([[0, 0, -1.0], [0.3, 0, -0.95], [1.0, 0, 0], [0, 0, 1.0], [0, 0, -1.0], [0, 0, 1.0]])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        rest = plane.resting(p, n, 0.02 * s)
+        assert rest.tolist() == [True, True, False, False, False, False]
+        q, moved = plane.hold(p, rest)
+        assert np.allclose(q[:2, 2], 0.5 * s, rtol=0, atol=1e-12 * s)  # lifted base pulled down, sunk one up
+        assert np.array_equal(q[:2, :2], p[:2, :2])  # along the normal only: free to slide
+        assert np.array_equal(q[2:5], p[2:5])  # above the plane and not the base: untouched
+        assert q[5, 2] == pytest.approx(0.5 * s) and np.array_equal(q[5, :2], p[5, :2])  # below: onto it
+        assert moved.tolist() == [True, True, False, False, False, True]
+        assert np.all(np.isfinite(q))
+        q2, moved2 = plane.hold(q, rest)  # a projection: idempotent
+        assert np.allclose(q2, q, rtol=0, atol=1e-12 * s)
