@@ -42,7 +42,7 @@ import torch
 from recon.io.mesh import Mesh
 from recon.optimize.params import TexturePyramid, albedo_param, roughness_param
 from recon.optimize.remesh import rasterize_atlas
-from recon.optimize import objective
+from recon.optimize import fitting, objective
 from recon.optimize.gbuffer import GBuffer, build_gbuffer, radiance
 from recon.optimize.views import ViewSet
 
@@ -164,6 +164,11 @@ class SelectionSettings:
     bilateral_radius: int = 2
 
 
+def fit_weights(s: SelectionSettings) -> dict[str, float]:
+    """The weights of the fits on G-buffers: the image term (1) and the material priors."""
+    return {"render": 1.0, "specular": s.w_specular, "roughness": s.w_roughness}
+
+
 @dataclass
 class Fit:
     model: MaterialModel
@@ -217,6 +222,13 @@ class MaterialParams:
         ro = self.p_rough.value(self.roughness.full()) if self.roughness is not None else None
         return d, sp, ro
 
+    def priors(self, d, sp, ro, valid: torch.Tensor, w: dict, s: SelectionSettings) -> dict:
+        """The material priors of the maps ``d``, ``sp``, ``ro`` (:meth:`values`) where they are
+        textures (:func:`recon.optimize.objective.material_terms`; ``valid``: the covered texels)."""
+        return objective.material_terms(
+            sp if self.model.specular == "textured" else None, d, ro if self.model.roughness == "textured" else None,
+            valid, w, s.bilateral_sigma_space, s.bilateral_sigma_color, s.bilateral_radius)
+
     def project_(self):
         self.diffuse.project_(self.p_alb)
         if self.specular is not None:
@@ -242,26 +254,15 @@ def fit_model(model: MaterialModel, gb: GBuffer, targets: ViewSet, init: dict, c
     t0 = time.perf_counter()
     prob = problem if problem is not None else MaterialProblem(gb, targets, s.tone_map, tone_scale)
     P = MaterialParams(model, init, covered, s)
-    opt = torch.optim.Adam(P.parameters(), lr=s.lr)
-    valid = torch.from_numpy(covered)
-    loss = torch.tensor(float("nan"))
-    w = {"render": 1.0, "specular": s.w_specular, "roughness": s.w_roughness}
-    n = max(int(s.iterations), 0)
-    for it in range(n + 1):
-        d, sp, ro = P.values()
-        loss = prob.loss(prob.render(d, sp, ro, light, s.r_min))
-        if it == n:
-            break
-        terms = {"render": loss, **objective.material_terms(
-            sp if model.specular == "textured" else None, d, ro if model.roughness == "textured" else None, valid,
-            w, s.bilateral_sigma_space, s.bilateral_sigma_color, s.bilateral_radius)}
-        total = objective.total(terms, w, dtype=None)
-        for g in opt.param_groups:
-            g["lr"] = s.lr * 0.1 ** (it / max(n - 1, 1))
-        opt.zero_grad(set_to_none=True)
-        total.backward()
-        opt.step()
-        P.project_()
+    valid, w = torch.from_numpy(covered), fit_weights(s)
+    values = []  # the maps of the step's image term, for its priors
+
+    def image_term(it: int) -> torch.Tensor:
+        values[:] = P.values()
+        return prob.loss(prob.render(*values, light, s.r_min))
+
+    loss = fitting.fit([{"params": P.parameters(), "lr": s.lr}], max(int(s.iterations), 0), image_term, w,
+                       priors=lambda: P.priors(*values, valid, w, s), project=P.project_)
     return Fit(model, P.maps(), float(loss.detach()), seconds=time.perf_counter() - t0)
 
 
