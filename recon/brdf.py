@@ -19,19 +19,39 @@ Everything broadcasts. ``G1(c) / (2 c) = 1 / (c + sqrt(alpha^2 + (1 - alpha^2) c
 for the specular term, so it stays finite as the cosines go to 0. Both sides of the surface
 are not modelled: where n.l <= 0 or n.v <= 0, f = 0 (front side only).
 
-The model exists four times, each for its own machinery, each tied to this reference by tests
-(change one, change all four):
+The model exists six times, each for its own machinery, each tied to this reference by the tests
+named (change one, change all):
 
 - here, numpy float64: the reference (``tests/test_brdf.py``: known values, normalization of D,
   Smith G1's projected area, reciprocity, energy bounds, extremes);
-- ``recon/render/collocated.py`` ``CollocatedRenderer._shade``, drjit, the differentiable renderer
-  (``tests/render/test_collocated.py::test_forward_known_values_fronto_parallel_quad`` and the
-  comparison with Mitsuba's render through the plugin below);
+- ``recon/render/collocated.py`` ``CollocatedRenderer._shade_collocated``, drjit, the
+  differentiable renderer with the light at the lens
+  (``tests/render/test_collocated.py::test_forward_known_values_fronto_parallel_quad`` against
+  :func:`radiance_collocated`; ``test_forward_matches_mitsuba_reference`` through the plugin
+  below);
+- ``recon/render/collocated.py`` ``CollocatedRenderer._shade_offset``, drjit, the same renderer
+  with the flash beside the lens (the general model)
+  (``tests/render/test_collocated.py::test_forward_known_values_flash_offset_and_ambient``
+  against :func:`eval_brdf`; ``test_flash_offset_matches_mitsuba_reference`` through the plugin
+  below; ``test_flash_offset_and_ambient_match_the_formation`` against the G-buffer's
+  ``radiance_offset`` as :mod:`recon.optimize.formation` applies it);
 - ``recon/optimize/gbuffer.py`` ``radiance``, torch, the G-buffer shading of the material fits
-  (``tests/optimize/test_material.py::test_shading_matches_reference_brdf``);
+  (``tests/optimize/test_material.py::test_shading_matches_reference_brdf`` against
+  :func:`radiance_collocated`);
+- ``recon/optimize/gbuffer.py`` ``radiance_offset``, torch, the G-buffer shading with the flash
+  beside the lens (the imaging fits, :mod:`recon.optimize.formation`)
+  (``tests/optimize/test_imaging.py::test_offset_light_matches_reference_brdf`` against
+  :func:`eval_brdf`; ``test_zero_offset_equals_the_collocated_fast_path`` against ``radiance``);
 - ``recon/render/mitsuba_bsdf.py``, a Mitsuba BSDF plugin: synthetic captures, reference renders
-  and relighting (``tests/render/test_mitsuba_bsdf.py::test_eval_matches_reference``, a chi-square
-  test of its sampling).
+  and relighting (``tests/render/test_mitsuba_bsdf.py::test_eval_matches_reference`` against
+  :func:`eval_brdf`; ``test_sampling_chi2``, a chi-square test of its sampling);
+- and its diffuse lobe alone (a_d = 1) in ``recon/optimize/radiometry.py`` ``unit_render``, the
+  light scale's estimate
+  (``tests/optimize/test_radiometry.py::test_unit_render_is_the_collocated_diffuse_model``
+  against :func:`radiance_collocated`).
+
+``tests/test_brdf.py::test_every_copy_is_named_with_its_tests`` holds this list to the code: each
+file and function named exists, and so does each test.
 """
 
 from __future__ import annotations

@@ -45,8 +45,8 @@ Where it is applied:
   (:meth:`recon.optimize.imaging.ImagingProblem.render`); in the main loop the differentiable
   renderer shades it with its own drjit copy (``CollocatedRenderer._shade`` and
   ``_shade_offset``, keywords from :func:`renderer_lighting`), tested against
-  :func:`surface_radiance` (``tests/render/test_collocated.py::
-  test_flash_offset_and_ambient_match_the_formation``);
+  :func:`surface_radiance` (``test_flash_offset_and_ambient_match_the_formation`` in
+  tests/render/test_collocated.py);
 - the camera side (the second line) by :func:`camera_response`, on the G-buffer's pixels and on
   the main loop's rendered images alike (:meth:`recon.optimize.loop_imaging.LoopImaging.apply`).
 """

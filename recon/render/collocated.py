@@ -354,8 +354,10 @@ class CollocatedRenderer:
         ``light``: per-lane point light positions (the flash beside the lens) for the general
         model of DESIGN section 3 (l != v); None: the light is at ``o`` (the collocated model).
         The call's ambient radiance (``self._ambient``, relative to I_e) adds ``A (a_d + a_s)``
-        at every hit (an unoccluded constant environment, as the imaging model of
-        :mod:`recon.optimize.imaging` has it).
+        at every hit (an unoccluded constant environment). Flash offset and ambient light are the
+        scene side of the image formation of :mod:`recon.optimize.formation`, copied here in
+        drjit for speed; ``test_flash_offset_and_ambient_match_the_formation`` in
+        tests/render/test_collocated.py holds the copy to it.
         """
         dr, mi = self.dr, self.mi
         base = prim * 3
@@ -417,7 +419,8 @@ class CollocatedRenderer:
         """The general model of DESIGN section 3 for a light at ``light`` seen from the camera
         (unit direction ``w`` from the hit ``y``, ``nv`` = n . w): GGX D(n . h), Schlick F(v . h),
         separable Smith G1, times n . l / |light - y|^2. No shadow test: the flash sits ~1 cm from
-        the lens, so what the camera sees is lit except in slivers."""
+        the lens, so what the camera sees is lit except in slivers. One of the model's copies
+        listed in :mod:`recon.brdf`."""
         dr = self.dr
         lv = light - y
         dl2 = dr.squared_norm(lv)

@@ -359,7 +359,7 @@ def scene_dict(mesh: Mesh, textures: Mapping[str, object], camera: Camera,
     """The Mitsuba scene of DESIGN section 3 for one view (the plugin must be registered).
 
     ``light_position`` (3,) moves the point light away from the camera centre (a phone's flash,
-    DESIGN section 6).
+    DESIGN section 7).
     """
     if not np.isfinite(light_intensity) or light_intensity <= 0:
         raise ValueError(f"light_intensity must be a positive number, got {light_intensity}")

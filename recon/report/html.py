@@ -231,8 +231,8 @@ def _camera_section(cam: dict) -> str:
 
 
 def _imaging_section(sel: dict, title: str = "Camera imaging: terms chosen on held-out views") -> str:
-    """The camera's imaging terms tried on held-out views (recon.optimize.imaging), the decision
-    and the fitted values."""
+    """The camera's imaging terms tried on held-out views (recon.optimize.imaging_select), the
+    decision and the fitted values."""
     rows = []
     for r in sel["candidates"]:
         gain, se = r.get("gain"), r.get("se")

@@ -1,5 +1,5 @@
 """A phone's imaging for synthetic captures: flash offset, ambient light, exposure and white
-balance jitter, lens falloff, a phone tone curve and 8-bit JPEGs with EXIF (DESIGN section 6).
+balance jitter, lens falloff, a phone tone curve and 8-bit JPEGs with EXIF (DESIGN section 7).
 
 Each effect is a setting of :class:`recon.synth.capture.SynthSettings` that is off by default,
 so it can be switched on alone. For view k, with ``x`` the linear Rec.709 render (flash at

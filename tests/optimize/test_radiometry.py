@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from recon.brdf import radiance_collocated
 from recon.io.cameras import Camera, CameraSet, load_cameras, save_cameras
 from recon.io.images import read_exr
 from recon.io.mesh import Mesh, read_mesh
@@ -60,6 +61,9 @@ def test_unit_render_is_the_collocated_diffuse_model():
     rad, hit, mu = unit_render(mesh, [cam], spp=4)
     assert hit.min() == 1.0 and np.all(np.isfinite(rad))
     assert rad[0, 4, 4] == pytest.approx(1 / (np.pi * d * d), rel=2e-3)
+    # the reference model's diffuse lobe (recon.brdf, which lists this copy)
+    ref = radiance_collocated(1.0, d, np.ones(1), np.zeros(1), 0.5)[0]
+    assert rad[0, 4, 4] == pytest.approx(ref, rel=2e-3)
     assert mu[0, 4, 4] == pytest.approx(1.0, abs=1e-3)
 
 

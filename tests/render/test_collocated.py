@@ -191,6 +191,96 @@ def test_forward_known_values_fronto_parallel_quad(mi):
     np.testing.assert_allclose(img, ref, rtol=2e-3)
 
 
+def _tilted_quad(n: int = 24, sub: int = 16):
+    """A quad in z = 0 filling the view of a camera off its axis (n x n pixels), and the points
+    of a ``sub`` x ``sub`` grid in every pixel on it: (n, sub, n, sub, 3), rows then columns."""
+    v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    t = (v[:, :2] + 1) / 2
+    cam = Camera("q.png", n, n, intrinsics(n, n, 30.0), look_at((0.35, -0.25, 3.0), (0.05, 0.0, 0.0), (0, 1, 0)))
+    s = (np.arange(sub) + 0.5) / sub
+    x = (np.arange(n)[:, None] + s[None, :]).ravel()
+    jj, ii = np.meshgrid(x, x)  # (sub n, sub n) sub-pixel positions (col, row)
+    d = np.stack([jj, ii, np.ones_like(jj)], -1) @ np.linalg.inv(cam.K).T
+    d = d @ cam.world_to_camera[:3, :3]  # camera -> world directions
+    o = cam.center
+    y = o + (-o[2] / d[..., 2])[..., None] * d  # hits on the plane z = 0
+    assert np.all(np.abs(y[..., :2]) < 1)  # the quad fills the view
+    return (v, f, t), cam, y.reshape(n, sub, n, sub, 3)
+
+
+def test_forward_known_values_flash_offset_and_ambient():
+    """The flash beside the lens and ambient light (``_shade_offset`` and the ambient term of
+    ``_shade``) against recon.brdf's general model: a tilted quad with constant maps, every pixel
+    equal to f(l, v) I n.l / |light - y|^2 + A (a_d + a_s) averaged over the pixel (a 16 x 16
+    sub-pixel grid in numpy, float64), the light at c + R^T t."""
+    from recon.brdf import eval_brdf
+
+    (v, f, t), cam, y = _tilted_quad()
+    a_d, a_s, rough, light, amb = np.array([0.6, 0.3, 0.1]), 0.5, 0.35, 2.5, 0.07
+    offset = np.array([0.25, -0.15, 0.0])  # large, so that the test sees it
+    r = CollocatedRenderer(f, t, f, RenderSettings(spp=256, boundary="none"))
+    maps = (np.ones((4, 4, 3)) * a_d, np.full((4, 4, 1), a_s), np.full((4, 4, 1), rough))
+    img = r.render(v, *maps, [cam], light, 0, flash_offset=offset, ambient=amb)[0].numpy()
+    pos = cam.center + cam.world_to_camera[:3, :3].T @ offset
+    lv, vv = pos - y, cam.center - y
+    nrm = np.broadcast_to(np.array([0.0, 0.0, 1.0]), y.shape)
+    fr = eval_brdf(nrm, lv, vv, a_d, np.array([a_s]), np.full(y.shape[:-1], rough))
+    d2 = (lv * lv).sum(-1)
+    ref = fr * (light * np.maximum(lv[..., 2], 0.0) / d2 ** 1.5)[..., None] + amb * (a_d + a_s)
+    ref = ref.mean(axis=(1, 3))
+    np.testing.assert_allclose(img, ref, rtol=2e-3)
+    centred = r.render(v, *maps, [cam], light, 0)[0].numpy()
+    assert np.abs(img - centred).mean() > 0.05 * centred.mean()  # the offset and ambient are seen
+
+
+def test_flash_offset_and_ambient_match_the_formation():
+    """The renderer's drjit copy of the scene side of the image formation (flash offset and
+    ambient light, ``CollocatedRenderer._shade``/``_shade_offset``, given the keywords
+    :func:`recon.optimize.formation.renderer_lighting` makes for the main loop) against the
+    formation itself (:func:`recon.optimize.formation.surface_radiance`, which the G-buffer fits
+    and held-out scorers use) on the same pixels: a tilted quad with smoothly varying maps, the
+    formation at a 16 x 16 sub-pixel grid, the renderer at 256 samples per pixel."""
+    import torch
+
+    from recon.optimize.formation import ImagingModel, ImagingParams, renderer_lighting, surface_radiance
+    from recon.optimize.gbuffer import GBuffer
+
+    (v, f, t), cam, y = _tilted_quad()
+    n, sub = cam.width, y.shape[1]
+    ramp = np.linspace(0.0, 1.0, 8)
+    u, w = np.meshgrid(ramp, ramp)  # a smooth variation across the quad, in both directions
+    diffuse = np.stack([0.2 + 0.5 * u, 0.3 + 0.3 * w, 0.5 - 0.3 * u * w], -1).astype(np.float32)
+    specular = (0.2 + 0.6 * w)[..., None].astype(np.float32)
+    roughness = (0.25 + 0.3 * u)[..., None].astype(np.float32)
+    light = 2.5
+    params = ImagingParams(ImagingModel(("flash_offset", "ambient")), 1, 1.0, 0.4, offset_given=[0.25, -0.15, 0.0])
+    with torch.no_grad():
+        params.ambient_raw.fill_(-1.0)
+    lighting = renderer_lighting(params)
+    assert lighting["ambient"] > 0 and np.allclose(lighting["flash_offset"], [0.25, -0.15, 0.0])
+    r = CollocatedRenderer(f, t, f, RenderSettings(spp=256, boundary="none"))
+    img = r.render(v, diffuse, specular, roughness, [cam], light, 0, **lighting)[0].numpy()
+
+    pts = y.reshape(-1, 3)
+    pixel = np.broadcast_to((np.arange(n)[:, None, None, None] * n + np.arange(n)[None, None, :, None]),
+                            (n, sub, n, sub)).reshape(-1)
+    to_cam = cam.center - pts
+    dist = np.linalg.norm(to_cam, axis=1)
+    f32 = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+    gb = GBuffer(torch.from_numpy(pixel.astype(np.int64)), f32((pts[:, :2] + 1) / 2), f32(to_cam[:, 2] / dist),
+                 f32(1 / dist**2), sub * sub, (1, n, n), f32(pts), f32(np.broadcast_to([0.0, 0.0, 1.0], pts.shape)))
+    R = f32(cam.world_to_camera[None, :3, :3])
+    o = f32(cam.center[None])
+    with torch.no_grad():
+        rad = surface_radiance(gb, gb.grid, torch.zeros(len(pts), dtype=torch.long), R, o, f32(diffuse), f32(specular),
+                               f32(roughness), light, RenderSettings().r_min, params)
+    want = torch.zeros((n * n, 3)).index_add(0, gb.pixel, rad).numpy().reshape(n, n, 3) / (sub * sub)
+    np.testing.assert_allclose(img, want, rtol=2e-3)
+    centred = r.render(v, diffuse, specular, roughness, [cam], light, 0)[0].numpy()
+    assert np.abs(img - centred).mean() > 0.05 * centred.mean()  # the offset and ambient are seen
+
+
 def test_uv_convention_and_bilinear_lookup():
     """Texel (i, j) sits at u = (j + 0.5)/W, v = 1 - (i + 0.5)/H: a quad filling the view
     with u = x/w, v = 1 - y/h shows texel (i, j) in pixel (i, j). With a linear texture the
