@@ -21,11 +21,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from recon.optimize import objective
+from recon.optimize import fitting, objective
 from recon.optimize.formation import (ImagingModel, ImagingParams, camera_response, srgb_encode,
                                       surface_radiance)
 from recon.optimize.gbuffer import GBuffer, build_gbuffer
-from recon.optimize.material import Fit, MaterialModel, MaterialParams, MaterialProblem, SelectionSettings
+from recon.optimize.material import (Fit, MaterialModel, MaterialParams, MaterialProblem, SelectionSettings,
+                                     fit_weights)
 from recon.optimize.views import ViewSet, view_exposures
 
 
@@ -83,8 +84,7 @@ class ImagingProblem(MaterialProblem):
         :mod:`recon.optimize.formation`: :func:`surface_radiance` at the samples, their mean per
         pixel, :func:`camera_response`)."""
         rad = surface_radiance(self.gb, self.grid, self.sample_view, self.R, self.o, d, sp, ro, light, r_min, im)
-        out = torch.zeros((len(self.pixels), 3), dtype=rad.dtype).index_add(0, self.sample_pixel, rad) / self.gb.spp
-        return camera_response(out, im, self.pixel_view, self.r2, self.pixel_exposure)
+        return camera_response(self.pixel_mean(rad), im, self.pixel_view, self.r2, self.pixel_exposure)
 
     def loss(self, rendered: torch.Tensor, select: torch.Tensor | None = None) -> torch.Tensor:
         e = self.pixel_errors(rendered)
@@ -127,11 +127,6 @@ class ImagingFit:
     rmse_srgb: float = float("nan")
 
 
-def _lr_decay(opt, base: list[float], it: int, n: int) -> None:
-    for g, lr in zip(opt.param_groups, base, strict=True):
-        g["lr"] = lr * 0.1 ** (it / max(n - 1, 1))
-
-
 def fit_imaging(model: ImagingModel, material: MaterialModel, prob: ImagingProblem, init_maps: dict,
                 covered: np.ndarray, light: float, s: SelectionSettings, im: ImagingSettings,
                 init_params: ImagingParams | None = None, length: float = 1.0, tone_scale: float = 1.0,
@@ -145,26 +140,18 @@ def fit_imaging(model: ImagingModel, material: MaterialModel, prob: ImagingProbl
     if init_params is not None:
         ip.copy_from(init_params)
     groups = [{"params": P.parameters(), "lr": s.lr}] + ip.groups(im.lr)
-    base = [g["lr"] for g in groups]
-    opt = torch.optim.Adam(groups)
-    valid = torch.from_numpy(covered)
-    w = {"render": 1.0, "specular": s.w_specular, "roughness": s.w_roughness}
-    n = max(int(s.iterations), 0)
-    loss = torch.tensor(float("nan"))
-    for it in range(n + 1):
-        d, sp, ro = P.values()
-        loss = prob.loss(prob.render(d, sp, ro, light, s.r_min, ip))
-        if it == n:
-            break
-        terms = {"render": loss, **objective.material_terms(
-            sp if material.specular == "textured" else None, d, ro if material.roughness == "textured" else None,
-            valid, w, s.bilateral_sigma_space, s.bilateral_sigma_color, s.bilateral_radius)}
-        total = objective.total(terms, w, dtype=None) + ip.prior(im.exposure_prior, im.tone_gain_prior) / prob.n_total
-        _lr_decay(opt, base, it, n)
-        opt.zero_grad(set_to_none=True)
-        total.backward()
-        opt.step()
-        P.project_()
+    valid, w = torch.from_numpy(covered), {**fit_weights(s), "imaging": 1.0}
+    values = []  # the maps of the step's image term, for its priors
+
+    def image_term(it: int) -> torch.Tensor:
+        values[:] = P.values()
+        return prob.loss(prob.render(*values, light, s.r_min, ip))
+
+    def priors() -> dict:
+        return {**P.priors(*values, valid, w, s), **objective.imaging_terms(
+            lambda: ip.prior(im.exposure_prior, im.tone_gain_prior) / prob.n_total, w)}
+
+    loss = fitting.fit(groups, max(int(s.iterations), 0), image_term, w, priors=priors, project=P.project_)
     fit = Fit(material, P.maps(), float(loss.detach()), seconds=time.perf_counter() - t0)
     return ImagingFit(model, fit, ip, float(loss.detach()), seconds=time.perf_counter() - t0)
 
@@ -182,16 +169,11 @@ def _heldout_gains(ip: ImagingParams, fit_on: torch.Tensor, render, prob: Imagin
     """The held-out views' exposure gains of ``ip`` fitted (from 1) on the pixels ``fit_on``."""
     with torch.no_grad():
         ip.log_gain.zero_()
-    opt = torch.optim.Adam([ip.log_gain], lr=0.05)
     sel = fit_on.to(torch.float32)
-    n = int(im.heldout_iterations)
-    for it in range(n):
-        for g in opt.param_groups:
-            g["lr"] = 0.05 * 0.1 ** (it / max(n - 1, 1))
-        loss = prob.loss(render(ip), sel) + ip.prior(im.exposure_prior, im.tone_gain_prior) / prob.n_total
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+    w = {"render": 1.0, "imaging": 1.0}
+    fitting.fit([{"params": [ip.log_gain], "lr": 0.05}], int(im.heldout_iterations),
+                lambda it: prob.loss(render(ip), sel), w, final_loss=False, priors=lambda: objective.imaging_terms(
+                    lambda: ip.prior(im.exposure_prior, im.tone_gain_prior) / prob.n_total, w))
 
 
 def heldout_tiles_under(maps: dict, material: MaterialModel, p: ImagingParams, prob: ImagingProblem, light: float,

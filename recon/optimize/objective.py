@@ -1,27 +1,30 @@
 """The objective, in one place: the image term of the paper's equation 6 and the priors.
 
-Both the main loop (:mod:`recon.optimize.loop`) and the material fits
-(:mod:`recon.optimize.material`) evaluate their loss through this module, so a new term (an
-imaging-model parameter's prior, a camera prior, a mask-restricted image term) is one edit here:
-its name in :data:`TERMS`, its weight in :func:`weights`, its value in :func:`geometry_terms` or
-:func:`material_terms`.
+Every loss of the optimize stage is assembled here: the main loop's (:mod:`recon.optimize.loop`)
+and that of every other fit (:func:`recon.optimize.fitting.fit`: the material and imaging fits,
+the held-out views' exposure gains and poses). A new term (an imaging-model parameter's prior,
+a mask-restricted image term) is one edit here: its name in :data:`TERMS`, its weight in
+:func:`weights`, its value in a ``*_terms`` function.
 
     L = w_render * mean(w_pix |Phi(I(theta)) - Phi(I_target)|)          image term (eq. 6)
       + w_laplacian * L_lap(V) + w_edge * L_edge(V) + w_normal * L_n(V)  mesh priors
       + w_specular * L_bilateral(a_s; a_d) + w_roughness * TV(r)         material priors
       + w_camera * L_camera(views in the batch)                          camera prior (when refined)
-      + w_imaging * L_exposure                                           exposure prior (imaging_loop)
+      + w_imaging * L_exposure                                           exposure prior (imaging terms)
+      + w_tracks * L_tracks(cameras)                                     SfM tracks reprojected (bench)
 
 ``Phi`` is the tone map applied to both sides; ``w_pix`` is 0 on clipped pixels.
 """
 
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 
 from recon.optimize import regularizers as reg
 
-TERMS = ("render", "laplacian", "edge", "normal", "specular", "roughness", "camera", "imaging")
+TERMS = ("render", "laplacian", "edge", "normal", "specular", "roughness", "camera", "imaging", "tracks")
 
 
 # ---- Image term ----
@@ -37,11 +40,18 @@ def tone_map(x: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
     raise ValueError(f"tone map must be 'log', 'srgb' or 'linear', got {kind!r}")
 
 
+def image_residual(render: torch.Tensor, target_phi: torch.Tensor, weights: torch.Tensor, kind: str,
+                   scale: float) -> torch.Tensor:
+    """Eq. 6 before its mean: ``w |Phi(render) - Phi(target)|`` per pixel and channel, shape
+    (..., 3); ``target_phi`` is the target already tone mapped, ``weights`` (..., 1)."""
+    return (tone_map(render, kind, scale) - target_phi).abs() * weights
+
+
 def pixel_loss(render: torch.Tensor, target_phi: torch.Tensor, weights: torch.Tensor, kind: str,
                scale: float) -> torch.Tensor:
-    """Per pixel ``w |Phi(render) - Phi(target)|`` averaged over channels; ``target_phi`` is the
+    """Eq. 6 per pixel (:func:`image_residual` averaged over channels); ``target_phi`` is the
     target already tone mapped (it never changes during a fit). Shapes (..., 3), (..., 1)."""
-    return ((tone_map(render, kind, scale) - target_phi).abs() * weights).mean(-1)
+    return image_residual(render, target_phi, weights, kind, scale).mean(-1)
 
 
 def render_loss(render: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
@@ -51,8 +61,7 @@ def render_loss(render: torch.Tensor, target: torch.Tensor, weights: torch.Tenso
     """
     if render.shape != target.shape:
         raise ValueError(f"render {tuple(render.shape)} and target {tuple(target.shape)} differ")
-    d = (tone_map(render, kind, scale) - tone_map(target, kind, scale)).abs() * weights
-    return d.mean()
+    return image_residual(render, tone_map(target, kind, scale), weights, kind, scale).mean()
 
 
 # ---- Weights: the one place where the ablation switches act ----
@@ -98,10 +107,29 @@ def material_terms(specular, diffuse, roughness, valid, w: dict, sigma_space: fl
 
 def camera_terms(refinement, idx, w: dict) -> dict[str, torch.Tensor]:
     """The camera prior (:meth:`recon.optimize.camera_refine.CameraRefinement.prior_loss` over
-    the views ``idx`` of the batch) when the cameras are refined and its weight is nonzero."""
+    the views ``idx`` of the batch, None: all) when the cameras are refined and its weight is
+    nonzero."""
     if refinement is None or not w.get("camera"):
         return {}
     return {"camera": refinement.prior_loss(idx)}
+
+
+def imaging_terms(prior: Callable[[], torch.Tensor] | None, w: dict) -> dict[str, torch.Tensor]:
+    """The imaging terms' prior (the exposure gains' and the tone curve's gain's, see
+    :meth:`recon.optimize.formation.ImagingParams.prior`), evaluated by ``prior()`` only when
+    there are imaging terms (``prior`` not None) and its weight is nonzero."""
+    if prior is None or not w.get("imaging"):
+        return {}
+    return {"imaging": prior()}
+
+
+def tracks_terms(tracks, refinement, cameras, w: dict) -> dict[str, torch.Tensor]:
+    """SfM's tracks reprojected through the refined cameras (:class:`recon.optimize.tracks.TrackTerm`,
+    its points retriangulated under them first) when given and its weight is nonzero."""
+    if tracks is None or not w.get("tracks"):
+        return {}
+    tracks.retriangulate(refinement, cameras)
+    return {"tracks": tracks.loss(refinement, cameras)}
 
 
 def total(terms: dict[str, torch.Tensor], w: dict[str, float], dtype: torch.dtype | None = torch.float64) -> torch.Tensor:
