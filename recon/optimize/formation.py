@@ -48,7 +48,10 @@ Where it is applied:
   :func:`surface_radiance` (``test_flash_offset_and_ambient_match_the_formation`` in
   tests/render/test_collocated.py);
 - the camera side (the second line) by :func:`camera_response`, on the G-buffer's pixels and on
-  the main loop's rendered images alike (:meth:`recon.optimize.loop_imaging.LoopImaging.apply`).
+  the main loop's rendered images alike (:meth:`recon.optimize.loop_imaging.LoopImaging.apply`);
+- without any term (the ideal formation: the flash at the lens, known exposure, linear) by the
+  material fits and their held-out scores too
+  (:meth:`recon.optimize.material.MaterialProblem.render`).
 """
 
 from __future__ import annotations
@@ -299,12 +302,16 @@ class ImagingParams:
 
 
 # ---------------------------------------------------------------------- Phi_k
-def surface_radiance(gb: GBuffer, grid: torch.Tensor, view: torch.Tensor, R: torch.Tensor, o: torch.Tensor,
-                     diffuse, specular, roughness, light: float, r_min: float, params: ImagingParams) -> torch.Tensor:
+def surface_radiance(gb: GBuffer, grid: torch.Tensor, view: torch.Tensor | None, R: torch.Tensor | None,
+                     o: torch.Tensor | None, diffuse, specular, roughness, light: float, r_min: float,
+                     params: ImagingParams | None) -> torch.Tensor:
     """(N, 3) radiance toward the camera of the G-buffer's samples (the first line of the module
     docstring): the flash of intensity ``light`` at the view's camera centre (the collocated fast
     path) or at its offset (``view`` (N,): each sample's view, indexing ``R`` (V, 3, 3) and ``o``
-    (V, 3), :func:`flash_positions`), plus the ambient light's reflection."""
+    (V, 3), :func:`flash_positions`; needed only then), plus the ambient light's reflection.
+    ``params`` None: the ideal formation (the material fits, :mod:`recon.optimize.material`)."""
+    if params is None:
+        return radiance(gb, grid, diffuse, specular, roughness, light, r_min)
     off = params.offset()
     if off is None:
         rad = radiance(gb, grid, diffuse, specular, roughness, light, r_min)
@@ -317,14 +324,18 @@ def surface_radiance(gb: GBuffer, grid: torch.Tensor, view: torch.Tensor, R: tor
     return rad
 
 
-def camera_response(x: torch.Tensor, params: ImagingParams, view: torch.Tensor, r2: torch.Tensor | None = None,
+def camera_response(x: torch.Tensor, params: ImagingParams | None, view: torch.Tensor,
+                    r2: torch.Tensor | None = None,
                     exposure: torch.Tensor | None = None, gains: torch.Tensor | None = None) -> torch.Tensor:
     """h_k(x g_k v(r)) (the second line of the module docstring): ``x`` (..., 3) the pixels'
     radiance -> the predicted linearized photo. Per pixel, each broadcast against ``x[..., 0]``:
     ``view`` the index of its view's gain into ``gains`` (default: the parameters' own,
     :meth:`ImagingParams.gains`), ``r2`` its squared image radius (:func:`image_radius2`; needed
     with the falloff) and ``exposure`` its view's recorded exposure relative to the reference
-    (where the tone curve acts; None: 1). The terms the model lacks leave ``x`` as it is."""
+    (where the tone curve acts; None: 1). The terms the model lacks leave ``x`` as it is, and so
+    does the ideal formation (``params`` None)."""
+    if params is None:
+        return x
     m = params.model
     if m.has("exposure"):
         g = params.gains() if gains is None else gains

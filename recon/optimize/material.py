@@ -43,7 +43,8 @@ from recon.io.mesh import Mesh
 from recon.optimize.params import TexturePyramid, albedo_param, roughness_param
 from recon.optimize.remesh import rasterize_atlas
 from recon.optimize import fitting, objective
-from recon.optimize.gbuffer import GBuffer, build_gbuffer, radiance
+from recon.optimize.formation import surface_radiance
+from recon.optimize.gbuffer import GBuffer, build_gbuffer
 from recon.optimize.views import ViewSet
 
 log = logging.getLogger(__name__)
@@ -130,7 +131,13 @@ class MaterialProblem:
         self.weight = targets.weights.reshape(-1, 1)[torch.from_numpy(self.pixels)]
 
     def render(self, diffuse, specular, roughness, light, r_min) -> torch.Tensor:
-        rad = radiance(self.gb, self.grid, diffuse, specular, roughness, light, r_min)
+        """(P, 3) radiance of the kept pixels under the ideal image formation (collocated light,
+        known exposure, linear: :func:`recon.optimize.formation.surface_radiance` without terms)."""
+        return self.pixel_mean(surface_radiance(self.gb, self.grid, None, None, None, diffuse, specular, roughness,
+                                                light, r_min, None))
+
+    def pixel_mean(self, rad: torch.Tensor) -> torch.Tensor:
+        """(P, 3) mean of each kept pixel's samples ``rad`` (N, 3) (a miss counts as 0)."""
         out = torch.zeros((len(self.pixels), 3), dtype=rad.dtype).index_add(0, self.sample_pixel, rad)
         return out / self.gb.spp
 
