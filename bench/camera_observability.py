@@ -6,7 +6,7 @@ Takes a synthetic capture (with ``gt/``) and the results folder of its SfM run t
 workflow (``bench/sfm_cameras.py``'s ``results/sfm``). The true mesh and maps are mapped into
 SfM's frame (the similarity of the camera centres; the light intensity scaled by 1/s^2) and
 SfM's training cameras are aligned to that fixed, true model with
-:func:`recon.optimize.loop.align_views`, the held-out views' alignment (per-view pose
+:func:`recon.optimize.cameras.align_views`, the held-out views' alignment (per-view pose
 corrections, the camera prior, rates decaying to 1/10, exposure gains of their own), under the
 imaging terms the run's loop chose. Printed: the camera errors against the truth before and
 after (rotation, centre / object size, reprojection of true surface points in the photos'
@@ -49,7 +49,7 @@ from recon.metrics import align_cameras  # noqa: E402
 from recon.optimize import objective, settings_from_dict  # noqa: E402
 from recon.optimize.camera_refine import CameraRefinement, scene_extent  # noqa: E402
 from recon.optimize.loop_imaging import LoopImaging  # noqa: E402
-from recon.optimize.loop import align_views  # noqa: E402
+from recon.optimize.cameras import align_views  # noqa: E402
 from recon.optimize.tracks import SfmTracks, TrackTerm  # noqa: E402
 from recon.poses.frame import rotate_cameras  # noqa: E402
 from recon.optimize.views import Views  # noqa: E402

@@ -17,7 +17,7 @@ fits
 each refitted as long from the same start; held-out views (every 5th, all EXIF exposures among
 them) are scored as the imaging selection scores them (gains cross-fitted on the checkerboard,
 :func:`recon.optimize.imaging.heldout_tiles_under`), the gain over the control is the paired
-per-tile test (:func:`recon.optimize.material.compare`). The curve error is
+per-tile test (:func:`recon.optimize.heldout.compare`). The curve error is
 ``max |H_fit(srgb(c y)) - T(s y)|`` (encoded) over the model's values y of the object's pixels
 (1st-99.5th percentile), at the best scale s (the gauge the albedo shares); ``identity`` is the
 same for no curve at all (linearize's plain sRGB decoding). Gains: max relative error of the
@@ -155,7 +155,8 @@ def gain_error(d: dict, fit) -> float:
 def run_curve(path: Path, args) -> dict:
     from recon.optimize.formation import ImagingModel
     from recon.optimize.imaging import ImagingSettings, fit_imaging, heldout_tiles_under
-    from recon.optimize.material import MaterialModel, SelectionSettings, compare
+    from recon.optimize.heldout import compare
+    from recon.optimize.material import MaterialModel, SelectionSettings
 
     d = torch.load(path, weights_only=False)
     mat = MaterialModel("textured", "mono", "uniform")

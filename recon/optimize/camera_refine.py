@@ -22,7 +22,7 @@ moved together with all cameras leaves every image unchanged, so the pose correc
 complement of that null space (computed at the given cameras, to first order): the mean camera
 motion and the cameras' overall scale stay those of the input, and so does the object frame.
 Views aligned to a fixed scene (the held-out views after the optimization,
-:func:`recon.optimize.loop.align_heldout`) have no gauge: ``gauge=False``.
+:func:`recon.optimize.cameras.align_heldout`) have no gauge: ``gauge=False``.
 
 Observability (``docs/camera_refine.md``): at ordinary fields of view a focal length error and
 the object scaled by the same factor give nearly the same images (perspective is the only cue),

@@ -1,6 +1,6 @@
 """Every fit but the main loop's, in one function: full-batch Adam with rates decaying tenfold.
 
-The main loop (:mod:`recon.optimize.loop`) has its own schedule (stages, views sampled per
+The main loop (:mod:`recon.optimize.run`, :mod:`recon.optimize.iteration`) has its own schedule (stages, views sampled per
 iteration, the surface guard). Every other fit of the optimize stage is :func:`fit`:
 
 - :func:`recon.optimize.material.fit_model`: a material model's maps on a fixed G-buffer;

@@ -4,7 +4,7 @@ and the optimize stage's entries to that selection.
 Selection: forward selection in rounds: each remaining term is fitted on top of the current
 terms with the material maps of the chosen material model (warm-started from the accepted fit)
 and compared with a control (the current model refitted as long) by the same paired per-tile
-test as the material model (:func:`recon.optimize.material.compare`); of the terms that pass,
+test as the material model (:func:`recon.optimize.heldout.compare`); of the terms that pass,
 the one with the largest gain is kept, and the next round tries the rest. Then each kept term
 is checked backwards: dropped when the model without it (refitted) is not significantly worse.
 Each fit is :func:`recon.optimize.imaging.fit_imaging`, each score
@@ -21,7 +21,8 @@ import numpy as np
 
 from recon.optimize.formation import TERMS, ImagingModel, ImagingParams
 from recon.optimize.imaging import ImagingFit, ImagingSettings, fit_imaging, heldout_tiles, problems
-from recon.optimize.material import Fit, MaterialModel, SelectionSettings, compare
+from recon.optimize.heldout import compare
+from recon.optimize.material import Fit, MaterialModel, SelectionSettings
 from recon.optimize.views import ViewSet, capture_is_ldr, recorded_exposures
 
 log = logging.getLogger(__name__)

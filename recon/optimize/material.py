@@ -45,6 +45,7 @@ from recon.optimize.remesh import rasterize_atlas
 from recon.optimize import fitting, objective
 from recon.optimize.formation import surface_radiance
 from recon.optimize.gbuffer import GBuffer, build_gbuffer
+from recon.optimize.heldout import compare
 from recon.optimize.views import ViewSet
 
 log = logging.getLogger(__name__)
@@ -298,33 +299,6 @@ def tile_errors(maps: dict, model: MaterialModel, gb: GBuffer, targets: ViewSet,
                 m = fg[v, y:y + t, x:x + t]
                 out.append(e[v, y:y + t, x:x + t][m].mean() if m.any() else np.nan)
     return np.asarray(out, dtype=np.float64)
-
-
-def compare(richer: np.ndarray, current: np.ndarray, s: SelectionSettings) -> dict:
-    """Paired comparison of per-tile held-out errors: gain = mean of (current - richer).
-
-    Accepted when gain > z * SE and gain > min_gain * (the current model's mean error). With
-    ``s.trim`` > 0 the gain is Yuen's trimmed mean (that fraction of tiles dropped at each end,
-    SE from the winsorized variance); the default 0 keeps every tile, because the gain of a
-    specular or roughness model sits in the few highlight tiles and a trim removes exactly those
-    (``bench/selection.py``, glossy blob, seed 0: the top 2 % of tiles carry 156 % of the
-    textured-roughness gain; a 2 % trim cuts that gain from 0.0058 to 0.0010).
-    """
-    ok = np.isfinite(richer) & np.isfinite(current)
-    d = np.sort(current[ok] - richer[ok])
-    n = int(d.size)
-    if n < 3:
-        return {"gain": 0.0, "se": float("inf"), "relative_gain": 0.0, "tiles": n, "accepted": False}
-    g = int(np.floor(float(s.trim) * n))
-    kept = d[g:n - g]
-    gain = float(kept.mean())
-    w = np.clip(d, kept[0], kept[-1])  # winsorized
-    se = float(w.std(ddof=1) / ((1 - 2 * g / n) * np.sqrt(n)))
-    e = np.sort(current[ok])
-    err = float(e[g:n - g].mean())
-    accept = bool(gain > s.z * se and gain > s.min_gain * err)
-    return {"gain": gain, "se": se, "relative_gain": gain / err if err > 0 else 0.0, "tiles": n,
-            "trimmed": 2 * g, "accepted": accept}
 
 
 def nested_init(current: Fit, init_maps: dict, candidate: MaterialModel | None = None,

@@ -1,6 +1,6 @@
 """The objective, in one place: the image term of the paper's equation 6 and the priors.
 
-Every loss of the optimize stage is assembled here: the main loop's (:mod:`recon.optimize.loop`)
+Every loss of the optimize stage is assembled here: the main loop's (:mod:`recon.optimize.iteration`)
 and that of every other fit (:func:`recon.optimize.fitting.fit`: the material and imaging fits,
 the held-out views' exposure gains and poses). A new term (an imaging-model parameter's prior,
 a mask-restricted image term) is one edit here: its name in :data:`TERMS`, its weight in

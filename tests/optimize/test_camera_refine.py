@@ -131,7 +131,7 @@ def test_perturbed_cameras_are_pulled_back_by_the_images():
 def test_heldout_alignment_renders_the_loop_imaging(drjit_single_thread):
     """Held-out photos taken at exposures 1.6x and 0.6x (a phone's auto-exposure), aligned to
     the true model from the true cameras: under the loop's exposure term (the views' own gains
-    fitted with their poses, recon.optimize.loop.align_views) the poses stay where they are and
+    fitted with their poses, recon.optimize.cameras.align_views) the poses stay where they are and
     the held-out errors are those of a right model; under the ideal formation the exposure is
     explained by the pose (with the flash at the lens, brightness and distance trade): the poses
     move and the errors are several times larger. drjit on one thread: the loop with nothing
@@ -141,7 +141,7 @@ def test_heldout_alignment_renders_the_loop_imaging(drjit_single_thread):
     from recon.io.mesh import Mesh
     from recon.optimize.formation import ImagingModel, ImagingParams
     from recon.optimize.loop_imaging import LoopImaging
-    from recon.optimize.loop import align_views
+    from recon.optimize.cameras import align_views
     from recon.optimize.settings import OptimizeSettings
     from recon.optimize.views import ViewSet
 

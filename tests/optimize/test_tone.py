@@ -187,7 +187,8 @@ def _fit_on_true_mesh(root, curve: str) -> dict:
     from recon.linearize.stage import linearize_capture
     from recon.optimize.gbuffer import build_gbuffer
     from recon.optimize.imaging import ImagingProblem, ImagingSettings, fit_imaging, heldout_tiles_under
-    from recon.optimize.material import MaterialModel, SelectionSettings, compare
+    from recon.optimize.heldout import compare
+    from recon.optimize.material import MaterialModel, SelectionSettings
     from recon.optimize.remesh import rasterize_atlas
     from recon.optimize.views import Views
     from recon.synth.capture import SynthSettings, make_capture
