@@ -25,8 +25,7 @@ from recon.optimize import fitting, objective
 from recon.optimize.formation import (ImagingModel, ImagingParams, camera_response, srgb_encode,
                                       surface_radiance)
 from recon.optimize.gbuffer import GBuffer, build_gbuffer
-from recon.optimize.material import (Fit, MaterialModel, MaterialParams, MaterialProblem, SelectionSettings,
-                                     fit_weights)
+from recon.optimize.material import Fit, MaterialModel, MaterialParams, MaterialProblem, SelectionSettings
 from recon.optimize.views import ViewSet, view_exposures
 
 
@@ -140,7 +139,7 @@ def fit_imaging(model: ImagingModel, material: MaterialModel, prob: ImagingProbl
     if init_params is not None:
         ip.copy_from(init_params)
     groups = [{"params": P.parameters(), "lr": s.lr}] + ip.groups(im.lr)
-    valid, w = torch.from_numpy(covered), {**fit_weights(s), "imaging": 1.0}
+    valid, w = torch.from_numpy(covered), {**objective.fit_weights(s), "imaging": 1.0}
     values = []  # the maps of the step's image term, for its priors
 
     def image_term(it: int) -> torch.Tensor:

@@ -172,11 +172,6 @@ class SelectionSettings:
     bilateral_radius: int = 2
 
 
-def fit_weights(s: SelectionSettings) -> dict[str, float]:
-    """The weights of the fits on G-buffers: the image term (1) and the material priors."""
-    return {"render": 1.0, "specular": s.w_specular, "roughness": s.w_roughness}
-
-
 @dataclass
 class Fit:
     model: MaterialModel
@@ -262,7 +257,7 @@ def fit_model(model: MaterialModel, gb: GBuffer, targets: ViewSet, init: dict, c
     t0 = time.perf_counter()
     prob = problem if problem is not None else MaterialProblem(gb, targets, s.tone_map, tone_scale)
     P = MaterialParams(model, init, covered, s)
-    valid, w = torch.from_numpy(covered), fit_weights(s)
+    valid, w = torch.from_numpy(covered), objective.fit_weights(s)
     values = []  # the maps of the step's image term, for its priors
 
     def image_term(it: int) -> torch.Tensor:

@@ -80,6 +80,12 @@ def weights(settings) -> dict[str, float]:
     }
 
 
+def fit_weights(s) -> dict[str, float]:
+    """The weights of the fits on G-buffers (:class:`recon.optimize.material.SelectionSettings`
+    ``s``): the image term's (1) and the material priors'."""
+    return {"render": 1.0, "specular": s.w_specular, "roughness": s.w_roughness}
+
+
 # ---- Priors ----
 def geometry_terms(v: torch.Tensor, topo, h: float, laplacian: str, w: dict) -> dict[str, torch.Tensor]:
     """The mesh priors with a nonzero weight in ``w`` (vertex positions ``v``)."""
