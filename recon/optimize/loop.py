@@ -27,6 +27,7 @@ import json
 import logging
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -109,9 +110,8 @@ def optimize_capture(
     source = cameras_source if cameras_source is not None else cameras_source_of(cameras_json)
 
     # ---- inputs: the views (training and held out), the initial mesh, the flash, the table ----
-    base, init, camera_info, holdout_info = _base_run(images, masks, saturation_masks, cams, cameras_json,
-                                                      init_mesh_obj, out_dir / "checkpoints", settings, source,
-                                                      plane_json)
+    inputs = _Inputs(images, masks, saturation_masks, cameras_json, init_mesh_obj, plane_json)
+    base, init, camera_info, holdout_info = _base_run(inputs, cams, settings, source, out_dir / "checkpoints")
 
     # ---- run(s): the control and, to decide on the cameras, the run that refines them ----
     runs = _runs(base, camera_info["mode"], camera_info["first_stage"])
@@ -143,14 +143,27 @@ def optimize_capture(
     return summary
 
 
-def _base_run(images, masks, saturation_masks, cams: CameraSet, cameras_json, init_mesh_obj, ckpt_dir: Path,
-              settings: OptimizeSettings, source: str | None, plane_json) -> tuple[Run, Mesh, dict, dict]:
+@dataclass(frozen=True)
+class _Inputs:
+    """The stage's input files (see :func:`optimize_capture`)."""
+
+    images: Sequence[str | os.PathLike]
+    masks: Sequence[str | os.PathLike] | None
+    saturation_masks: Sequence[str | os.PathLike | None] | None
+    cameras_json: str | os.PathLike
+    init_mesh_obj: str | os.PathLike
+    plane_json: str | os.PathLike | None
+
+
+def _base_run(inputs: _Inputs, cams: CameraSet, settings: OptimizeSettings, source: str | None,
+              ckpt_dir: Path) -> tuple[Run, Mesh, dict, dict]:
     """What every run knows (the views, held-out views, flash, plane, checkpoint fingerprint), the
-    initial mesh, the camera refinement's mode (the summary's ``camera_refinement``, to be completed) and the
-    held-out views' record."""
+    initial mesh, the camera refinement's mode (the summary's ``camera_refinement``, to be
+    completed) and the held-out views' record."""
     mode, why = settings.camera_mode(source)
     stages = settings.effective_stages()
-    views = Views(images, masks, saturation_masks, cams, max(settings.stage_image_size(s) for s in stages))
+    views = Views(inputs.images, inputs.masks, inputs.saturation_masks, cams,
+                  max(settings.stage_image_size(s) for s in stages))
     views, heldout, holdout_info = split_holdout(views, settings, force=mode == "select")
     if mode != "off" and len(views) < 3:
         mode, why = "off", f"only {len(views)} training views (camera refinement needs at least 3)"
@@ -158,37 +171,37 @@ def _base_run(images, masks, saturation_masks, cams: CameraSet, cameras_json, in
         mode, why = "off", "no held-out views to decide on (refine_cameras: select needs at least 6 views)"
     if mode != "off" or settings.refine_cameras != "off":
         log.info("camera refinement: %s (%s)", mode, why)
-    init = read_mesh(init_mesh_obj)
+    init = read_mesh(inputs.init_mesh_obj)
     lo, hi = init.bbox()
     bbox_scale = float(np.max(hi - lo))
     if not bbox_scale > 0:
-        raise OptimizeError(f"{init_mesh_obj}: the initial mesh has an empty bounding box")
+        raise OptimizeError(f"{inputs.init_mesh_obj}: the initial mesh has an empty bounding box")
     weights = objective.weights(settings)
     try:
-        plane = plane_if_found(plane_json)
+        plane = plane_if_found(inputs.plane_json)
     except PlaneError as e:
         raise OptimizeError(f"{e}; rerun the masks stage") from e
     if plane is not None:
-        log.info("support plane %s: the surface is kept above it", plane_json)
+        log.info("support plane %s: the surface is kept above it", inputs.plane_json)
         if np.any(plane.height(init.v_pos) < -0.01 * bbox_scale):
             log.warning("%s: the initial mesh reaches %.3g below the support plane (%s); those vertices are "
-                        "moved onto it", init_mesh_obj, -plane.height(init.v_pos).min(), plane_json)
-    files = [cameras_json, init_mesh_obj, *images, *(masks or []), *(saturation_masks or []),
-             plane_json if plane is not None else None]
+                        "moved onto it", inputs.init_mesh_obj, -plane.height(init.v_pos).min(), inputs.plane_json)
+    files = [inputs.cameras_json, inputs.init_mesh_obj, *inputs.images, *(inputs.masks or []),
+             *(inputs.saturation_masks or []), inputs.plane_json if plane is not None else None]
     fp = ckpt.fingerprint(settings.to_dict(), [str(f) if f is not None else None for f in files])
     tone_scale = views.median_foreground
-    light_scale = _light_scale(settings, cams, views, init, cameras_json)
+    light_scale = _light_scale(settings, cams, views, init, inputs.cameras_json)
     light = light_scale.intensity
 
     base = Run(settings, tuple(stages), views, heldout, bbox_scale, weights, tone_scale, light, ckpt_dir, fp,
                plane=plane, light_scale=light_scale, area_init=float(init.area()),
-               exposure=recorded_exposures(images))
+               exposure=recorded_exposures(inputs.images))
     if settings.imaging_loop != "off":
         if heldout is None:
             log.warning("imaging_loop: %s needs held-out views (at least 6 views); the loop renders the ideal "
                         "formation", settings.imaging_loop)
         else:
-            base = dataclasses.replace(base, ldr=capture_is_ldr(images))
+            base = dataclasses.replace(base, ldr=capture_is_ldr(inputs.images))
     # linear photos (RAW, EXR) carry their exposure: the cameras need not wait for the imaging terms
     camera_start = settings.camera_start(len(stages), settings.imaging_loop != "off" and heldout is not None
                                          and base.ldr is True)
