@@ -24,6 +24,9 @@ import torch
 
 from recon.optimize import regularizers as reg
 
+# every term's name (the log's ``loss_<name>``): the image term (eq. 6), the mesh priors, the
+# material priors, the camera prior, the imaging terms' prior (exposure gains, tone gain) and
+# SfM's tracks reprojected through refined cameras
 TERMS = ("render", "laplacian", "edge", "normal", "specular", "roughness", "camera", "imaging", "tracks")
 
 
