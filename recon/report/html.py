@@ -55,6 +55,7 @@ class ViewEntry:
     rmse: float
     files: dict  # role -> file name: input, render, error
     labels: tuple = ("input", "re-render", "error")
+    note: str = ""  # shown after the stem, e.g. "held out: never fitted"
 
 
 @dataclass
@@ -102,7 +103,7 @@ def _view_block(v: ViewEntry, rmse_label: str = "RMSE") -> str:
     labels = "".join(f'<div class="lbl">{html.escape(lbl)}</div>' for lbl in v.labels)
     return (f'<div class="view" id="view-{html.escape(v.stem)}"><div class="row">{imgs}</div>'
             f'<div class="row">{labels}</div>'
-            f'<div class="cap"><b>{html.escape(v.stem)}</b><span>{rmse_label} {fmt(v.rmse)}</span></div></div>')
+            f'<div class="cap"><b>{html.escape(v.stem)}</b>{f" ({html.escape(v.note)})" if v.note else ""}<span>{rmse_label} {fmt(v.rmse)}</span></div></div>')
 
 
 def render_page(p: Page) -> str:

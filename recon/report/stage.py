@@ -220,7 +220,11 @@ def make_report(
     except ReportError as e:  # the 3D view is optional: the report goes on without it
         viewer_skipped = str(e)
         log.warning("3D view skipped: %s", viewer_skipped)
-    chosen = _spread(list(cams.frames), settings.max_views)
+    # The views the optimizer held out (never fitted: a fair test of the asset) are always shown.
+    holdout = summary.get("holdout") if isinstance(summary.get("holdout"), dict) else {}
+    held = {str(s) for s in holdout.get("held_out") or []} & {c.stem for c in cams.frames}
+    spread = {c.stem for c in _spread(list(cams.frames), settings.max_views)}
+    chosen = [c for c in cams.frames if c.stem in spread or c.stem in held]
     views = {c.stem: load_view(c.stem, image_dirs, mask_dirs) for c in chosen}
     gt = None
     if gt_dir is not None and Path(gt_dir).is_dir():
@@ -319,19 +323,28 @@ def make_report(
 
         # ---- Views ----
         (tmp / "views").mkdir()
-        for k, cam in enumerate(chosen):
+        index = {c.stem: k for k, c in enumerate(cams.frames)}  # a view's seed: its place among all views
+        for cam in chosen:
             res = compare_view(views[cam.stem], cam, model.mesh, textures, light, settings.max_size,
-                               settings.spp, settings.seed + k, variant, r_min)
+                               settings.spp, settings.seed + index[cam.stem], variant, r_min)
             files = write_view_images(res, tmp / "views", settings.error_vmax)
             metrics["per_view_rmse"][cam.stem] = res.rmse
-            page.views.append(page_html.ViewEntry(cam.stem, res.rmse, {r: f"views/{f}" for r, f in files.items()}))
+            page.views.append(page_html.ViewEntry(cam.stem, res.rmse, {r: f"views/{f}" for r, f in files.items()},
+                                                  note="held out: never fitted" if cam.stem in held else ""))
             log.info("view %s: RMSE %.4f (%dx%d, %d spp)", cam.stem, res.rmse, res.camera.width,
                      res.camera.height, settings.spp)
         rmses = list(metrics["per_view_rmse"].values())
         metrics["per_view_rmse_mean"] = float(np.mean(rmses)) if rmses else None
+        if held:  # the held-out photos re-rendered against the fitted ones: how far the asset generalizes
+            per = metrics["per_view_rmse"]
+            metrics["heldout_views"] = sorted(held)
+            metrics["per_view_rmse_heldout_mean"] = float(np.mean([per[s] for s in held]))
+            fitted = [v for s, v in per.items() if s not in held]
+            metrics["per_view_rmse_fitted_mean"] = float(np.mean(fitted)) if fitted else None
         page.views_note = (
             f"{len(chosen)} of {len(cams)} views at up to {settings.max_size} px, {settings.spp} spp, "
-            f"light intensity {light:.4g}. RMSE of sRGB values over the union of the input mask and "
+            + (f"{len(held)} of them held out by the optimizer (never fitted), " if held else "")
+            + f"light intensity {light:.4g}. RMSE of sRGB values over the union of the input mask and "
             "the re-render's coverage (clipped input pixels left out)."
         )
         page.error_colorbar = plots.colorbar_svg(settings.error_vmax, ERROR_COLORMAP,
@@ -377,6 +390,9 @@ def make_report(
         # ---- Summary cards ----
         if metrics["per_view_rmse_mean"] is not None:
             page.cards.append(("mean view RMSE", f"{metrics['per_view_rmse_mean']:.4f}"))
+        if metrics.get("per_view_rmse_heldout_mean") is not None:
+            page.cards.append((f"held-out view RMSE ({len(held)} never fitted)",
+                               f"{metrics['per_view_rmse_heldout_mean']:.4f}"))
         for key in ("chamfer", "accuracy", "completeness", "image_rmse"):
             if _positive_or_zero(metrics["metrics"].get(key)):
                 page.cards.append((f"gt {key}", f"{metrics['metrics'][key]:.4g}"))

@@ -233,6 +233,30 @@ def test_without_gt_and_benchmarks(tmp_path, scene, fast_settings):
     assert "Against the ground truth" not in page
 
 
+def test_views_the_optimizer_held_out_are_shown_and_scored_apart(tmp_path, scene, fast_settings):
+    """The optimizer's held-out views (summary.json "holdout") are always re-rendered, whatever
+    max_views picks, labelled on the page and scored apart from the fitted ones (known values:
+    the last view's input is offset by 0.1 in sRGB, the others equal the re-render)."""
+    args = _copy_inputs(scene, tmp_path)
+    summary_path = tmp_path / "cap" / "optimize" / "summary.json"
+    stems = [c.stem for c in scene.cams.frames]
+    offset = next(s for s in stems if scene.expected_rmse[s] > 0)
+    held = [s for s in stems if s != stems[0]][-1:] + [offset]
+    summary = json.loads(summary_path.read_text())
+    summary["holdout"] = {"held_out": sorted(set(held)) + ["not-a-view"], "train_views": len(stems) - len(set(held))}
+    summary_path.write_text(json.dumps(summary))
+    m = make_report(**args, settings=ReportSettings(**{**fast_settings.__dict__, "max_views": 1}))
+    assert m["heldout_views"] == sorted(set(held))  # a stem the cameras lack is left out
+    assert set(held) <= set(m["per_view_rmse"])
+    want = np.mean([scene.expected_rmse[s] for s in set(held)])
+    assert m["per_view_rmse_heldout_mean"] == pytest.approx(want, abs=2e-6)
+    fitted = [v for s, v in m["per_view_rmse"].items() if s not in held]
+    assert m["per_view_rmse_fitted_mean"] == (pytest.approx(np.mean(fitted), abs=2e-6) if fitted else None)
+    page = (tmp_path / "out" / "report" / "index.html").read_text()
+    assert page.count("held out: never fitted") == len(set(held))
+    assert "held-out view RMSE" in page
+
+
 # ---- Errors: nothing partial left behind, and the message names the file ----
 def _copy_inputs(scene, tmp_path) -> dict:
     root = tmp_path / "cap"
