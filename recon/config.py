@@ -27,6 +27,7 @@ from pathlib import Path
 import yaml
 
 from recon.io.images import IMAGE_EXTENSIONS
+from recon.sections import move_flat, section_types
 from recon.stages import GPU_STAGES, SETTINGS_STAGES
 
 STAGES = SETTINGS_STAGES
@@ -117,9 +118,8 @@ def stage_settings(
     sources = [str(Path(presets_dir or DEFAULT_PRESETS_DIR) / f"{preset}.yaml")]
     key_sources = {}
     if stage in cap:
-        merged.update(cap[stage])
+        _merge_section(merged, cap[stage], str(Path(capture_dir) / "capture.yaml"), key_sources)
         sources.append(str(Path(capture_dir) / "capture.yaml"))
-        key_sources = dict.fromkeys(cap[stage], str(Path(capture_dir) / "capture.yaml"))
     if stage == "poses" and "light_intensity" in cap:  # the one route of the light (module docstring)
         merged["light_intensity"] = cap["light_intensity"]
         key_sources["light_intensity"] = str(Path(capture_dir) / "capture.yaml")
@@ -129,6 +129,19 @@ def stage_settings(
     merged["_key_sources"] = key_sources
     merged["_preset"] = preset
     return merged
+
+
+def _merge_section(merged: dict, update: dict, source: str, key_sources: dict, prefix: str = "") -> None:
+    """``merged`` updated by ``update`` (capture.yaml's section over the preset's), section by
+    section: a section both give (a mapping in both) keeps the preset's keys the capture does not
+    give. ``key_sources`` gets the dotted key of each value taken from ``source``."""
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = copy.deepcopy(merged[key])
+            _merge_section(merged[key], value, source, key_sources, f"{prefix}{key}.")
+        else:
+            merged[key] = copy.deepcopy(value)
+            key_sources[prefix + key] = source
 
 
 def effective_settings(
@@ -188,35 +201,48 @@ def job_variant(resources) -> str | None:
 T = typing.TypeVar("T")
 
 
-def build_settings(cls: type[T], values: dict | None, source: str = "settings") -> T:
+def build_settings(cls: type[T], values: dict | None, source: str = "settings", _label: str | None = None) -> T:
     """Build the frozen dataclass ``cls`` from ``values``, rejecting unknown keys.
 
     Lists become tuples where the field is a tuple; ``_``-prefixed bookkeeping keys are ignored.
+    A class with sections (:mod:`recon.sections`) takes each section as a mapping, built the same
+    way; a flat key from before the sections (``poses: {sift_upsample: 2}``) is moved to its place
+    (``features.sift_upsample``) with a one-line warning naming the file and the new place
+    (:func:`recon.sections.move_flat`). Where the section gives the key too, the capture's value
+    wins over the preset's; both in one file with different values is an error naming both.
     """
     values = dict(values or {})
     sources = values.pop("_sources", None)
-    key_sources = values.pop("_key_sources", None) or {}
+    key_sources = dict(values.pop("_key_sources", None) or {})
     values.pop("_preset", None)
     where = " / ".join(sources) if sources else source
+    label = _label or cls.__name__
 
     def where_is(*keys):  # the one file the keys came from, when that is known
         files = {key_sources.get(k, sources[0] if sources else source) for k in keys}
         return files.pop() if len(files) == 1 else where
 
     fields = {f.name: f for f in dataclasses.fields(cls)}
+    sections = section_types(cls)
+    if sections:
+        values = _move_flat_keys(cls, values, key_sources, where_is, label)
     unknown = sorted(set(values) - set(fields))
     if unknown:
         raise ConfigError(
-            f"{where_is(*unknown)}: unknown {cls.__name__} key(s) {unknown}; valid keys: {', '.join(sorted(fields))}"
+            f"{where_is(*unknown)}: unknown {label} key(s) {unknown}; valid keys: {', '.join(sorted(fields))}"
+            + (f" (in sections: {', '.join(sorted(sections))}; a flat key names its place in one)" if sections else "")
         )
     hints = typing.get_type_hints(cls)
     signed = set(getattr(cls, "SIGNED_SETTINGS", ()))
     kwargs = {}
     for name, value in values.items():
+        if name in sections:
+            kwargs[name] = _build_section(sections[name], name, value, sources, key_sources, where_is, source, label)
+            continue
         hint = hints.get(name)
         problem = _type_problem(value, hint, name in signed)
         if problem:
-            raise ConfigError(f"{where_is(name)}: {cls.__name__} setting '{name}' {problem}, got {value!r}")
+            raise ConfigError(f"{where_is(name)}: {label} setting '{name}' {problem}, got {value!r}")
         origin = typing.get_origin(hint)
         if (hint is tuple or origin is tuple) and isinstance(value, list):
             value = tuple(tuple(v) if isinstance(v, list) else v for v in value)
@@ -229,7 +255,62 @@ def build_settings(cls: type[T], values: dict | None, source: str = "settings") 
         return cls(**kwargs)
     except (TypeError, ValueError) as e:  # the dataclass's own checks: name the file of the keys it names
         named = [k for k in values if re.search(rf"\b{re.escape(k)}\b", str(e))]
-        raise ConfigError(f"{where_is(*named) if named else where}: invalid {cls.__name__} ({e})") from e
+        raise ConfigError(f"{where_is(*named) if named else where}: invalid {label} ({e})") from e
+
+
+def _build_section(section_cls, name, value, sources, key_sources, where_is, source, label):
+    """The section ``name`` of a settings class, built by :func:`build_settings` from its mapping."""
+    if isinstance(value, section_cls):
+        return value
+    if not isinstance(value, dict):
+        raise ConfigError(f"{where_is(name)}: {label} section '{name}' must be a mapping of setting names "
+                          f"to values, got {value!r}")
+    inner = {k[len(name) + 1:]: f for k, f in key_sources.items() if k.startswith(f"{name}.")}
+    if name in key_sources:  # the whole section came from one file
+        inner = {**dict.fromkeys(value, key_sources[name]), **inner}
+    return build_settings(section_cls, {**value, "_sources": sources, "_key_sources": inner}, source,
+                          _label=f"{label}.{name}")
+
+
+def _move_flat_keys(cls, values: dict, key_sources: dict, where_is, label: str) -> dict:
+    """``values`` with the flat keys of a class with sections moved to their places, each with a
+    one-line warning; a flat key that its section gives too: the capture's value wins over the
+    preset's, and one file giving both with different values is an error naming both.
+    ``key_sources`` gets each moved key's file under its new place."""
+    moved_values, moved = move_flat(cls, values)
+    for key, path in moved:
+        in_section = _lookup(values, path)
+        file = where_is(key)
+        _log.warning("%s: '%s' is deprecated here: its place is now '%s' (%s sections); move it there",
+                     file, key, path, label)
+        if in_section is not _MISSING and in_section != values[key]:
+            if key_sources.get(path) == key_sources.get(key):
+                raise ConfigError(f"{file}: {label} gives '{key}' ({values[key]!r}) and '{path}' "
+                                  f"({in_section!r}); keep '{path}' only")
+            if key_sources.get(path) is not None:  # the section's value is the capture's: it wins
+                moved_values = _with_path(moved_values, path, in_section)
+                continue
+        if key in key_sources:
+            key_sources[path] = key_sources[key]
+    return moved_values
+
+
+_MISSING = object()
+
+
+def _lookup(values: dict, path: str):
+    for part in path.split("."):
+        if not isinstance(values, dict) or part not in values:
+            return _MISSING
+        values = values[part]
+    return values
+
+
+def _with_path(values: dict, path: str, value) -> dict:
+    head, _, rest = path.partition(".")
+    out = dict(values)
+    out[head] = _with_path(out.get(head) or {}, rest, value) if rest else value
+    return out
 
 
 def _is_number(value) -> bool:

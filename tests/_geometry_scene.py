@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from recon import sections
 from recon.io.cameras import Camera
 from recon.io.mesh import Mesh
 
@@ -83,7 +84,7 @@ def synth_capture(base: Path, **overrides) -> Path:
 
     from recon.synth.capture import SynthSettings, make_capture
 
-    settings = SynthSettings(**{**SYNTH_TEST, **overrides})
+    settings = sections.replace(SynthSettings(), **{**SYNTH_TEST, **overrides})
     out = Path(base) / f"synth-{hashlib.sha1(repr(settings).encode()).hexdigest()[:12]}"
     if not (out / "gt" / "cameras.json").is_file():
         make_capture(out, settings)

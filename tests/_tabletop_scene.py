@@ -17,9 +17,10 @@ TABLETOP_TEST = dict(scene="tabletop", object="mug", n_views=24, width=192, heig
 def tabletop_capture(base: Path, **overrides) -> Path:
     """The capture for these settings, rendered into ``base`` unless already there (pass pytest's
     ``tmp_path_factory.getbasetemp()`` to share one render between test modules)."""
+    from recon import sections
     from recon.synth.capture import SynthSettings, make_capture
 
-    settings = SynthSettings(**{**TABLETOP_TEST, **overrides})
+    settings = sections.replace(SynthSettings(), **{**TABLETOP_TEST, **overrides})
     out = Path(base) / f"tabletop-{hashlib.sha1(repr(settings).encode()).hexdigest()[:12]}"
     if not (out / "gt" / "cameras.json").is_file():
         make_capture(out, settings)

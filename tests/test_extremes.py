@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from recon import sections
 from recon.init_mesh import InitMeshError, InitMeshSettings, run_init_mesh
 from recon.io.images import read_exr, read_mask, write_exr
 from recon.io.mesh import read_mesh
@@ -111,7 +112,7 @@ class _Runs:
         if name not in self.runs:
             from recon.synth.capture import SynthSettings, make_capture
 
-            capture = make_capture(self.root / name / "capture", SynthSettings(**{**SYNTH, **synth}))
+            capture = make_capture(self.root / name / "capture", sections.replace(SynthSettings(), **{**SYNTH, **synth}))
             self.runs[name] = run_pipeline(capture, self.root / name / "results", given_masks, optimize)
         return self.runs[name]
 

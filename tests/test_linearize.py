@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from recon import sections
 from recon.io.dng import GainMap, Opcode, write_dng, write_opcode_list
 from recon.io.images import read_exr, read_ldr, read_mask, write_exr
 from recon.linearize import (
@@ -164,7 +165,7 @@ def test_capture_from_synth_generator(tmp_path):
     luminance and channel means are checked; the scale is the generator's documented one (1).
     """
     from recon.synth import capture
-    settings = capture.SynthSettings(
+    settings = sections.replace(capture.SynthSettings(),
         object="blob", n_views=4, width=128, height=96, spp=16, format="dng",
         exposure_variation=1.0, noise=False, mesh_level=4, texture_size=128, seed=1,
     )

@@ -108,14 +108,14 @@ def test_similarity_is_the_retrieval_order():
 def test_auto_matcher_choice():
     s = rp.PoseSettings()
     assert matcher_kind(s, 32) == "exhaustive"  # the demo: every pair is cheap insurance
-    assert matcher_kind(s, s.exhaustive_max_views) == "exhaustive"
+    assert matcher_kind(s, s.matching.exhaustive_max_views) == "exhaustive"
     assert matcher_kind(s, 80) == "ordered"
-    assert matcher_kind(rp.PoseSettings(matcher="exhaustive"), 80) == "exhaustive"  # still selectable
-    assert matcher_kind(rp.PoseSettings(matcher="ordered"), 10) == "ordered"
+    assert matcher_kind(rp.PoseSettings(matching={"matcher": "exhaustive"}), 80) == "exhaustive"  # still selectable
+    assert matcher_kind(rp.PoseSettings(matching={"matcher": "ordered"}), 10) == "ordered"
     with pytest.raises(ValueError, match="ordered_neighbors"):
-        rp.PoseSettings(ordered_neighbors=0)
+        rp.PoseSettings(matching={"ordered_neighbors": 0})
     with pytest.raises(ValueError, match="bridge_window"):
-        rp.PoseSettings(bridge_window=0)
+        rp.PoseSettings(matching={"bridge_window": 0})
 
 
 @pytest.fixture(scope="module")
@@ -162,7 +162,7 @@ def test_ordered_matching_poses_a_capture_in_order(ordered_capture):
     from recon.io.cameras import Camera, CameraSet, load_cameras
 
     capture, folder, old_of = ordered_capture
-    settings = rp.PoseSettings(matcher="ordered", num_threads=1)
+    settings = rp.PoseSettings(matching={"matcher": "ordered"}, num_threads=1)
     diag = rp.run_poses(folder / "linear", folder / "poses", settings, masks_dir=folder / "masks",
                         linear_json=folder / "linear" / "linear.json")
     n = diag["views"]

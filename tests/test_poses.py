@@ -31,11 +31,11 @@ def _leftovers(folder):
 # ---------------------------------------------------------------------------------------------
 def test_settings_are_checked():
     with pytest.raises(ValueError, match="matcher"):
-        rp.PoseSettings(matcher="vocab")
+        rp.PoseSettings(matching={"matcher": "vocab"})
     with pytest.raises(ValueError, match="mapper"):
-        rp.PoseSettings(mapper="hierarchical")
+        rp.PoseSettings(mapping={"mapper": "hierarchical"})
     with pytest.raises(ValueError, match="min_registered"):
-        rp.PoseSettings(min_registered=2)
+        rp.PoseSettings(mapping={"min_registered": 2})
     with pytest.raises(ValueError, match="light_intensity must be a positive number, got 0"):
         rp.PoseSettings(light_intensity=0)
     assert rp.PoseSettings(light_intensity=3).light_intensity == 3.0 and rp.PoseSettings().light_intensity is None
@@ -173,20 +173,20 @@ def test_focal_prior_from_linear_json(tmp_path):
 
 
 def test_focal_prior_from_a_calibration(tmp_path):
-    """``poses.focal_px`` (pixels of the photos at their full size) replaces the EXIF prior and
+    """``poses.camera.focal_px`` (pixels of the photos at their full size) replaces the EXIF prior and
     is scaled to the linear views when linearize reduced the photos; bad values name the key."""
     p = tmp_path / "linear.json"
     p.write_text(json.dumps({"width": 800, "height": 600, "source_width": 4000, "source_height": 3000,
                              "images": {"a": {"focal_length_px": 700.0}, "b": {"focal_length_px": 700.0}}}))
     assert prior_focal(rp.PoseSettings(), p, ["a", "b"]) == (700.0, "EXIF")
-    f, source = prior_focal(rp.PoseSettings(focal_px=3300.0), p, ["a", "b"])
-    assert source == "poses.focal_px" and f == pytest.approx(660.0, rel=1e-12)  # 3300 * 800 / 4000
+    f, source = prior_focal(rp.PoseSettings(camera={"focal_px": 3300.0}), p, ["a", "b"])
+    assert source == "poses.camera.focal_px" and f == pytest.approx(660.0, rel=1e-12)  # 3300 * 800 / 4000
     p.write_text(json.dumps({"images": {"a": {}}}))  # no sizes recorded: taken as it is; no EXIF
-    assert prior_focal(rp.PoseSettings(focal_px=512), p, ["a"]) == (512.0, "poses.focal_px")
+    assert prior_focal(rp.PoseSettings(camera={"focal_px": 512}), p, ["a"]) == (512.0, "poses.camera.focal_px")
     assert prior_focal(rp.PoseSettings(), p, ["a"]) == (None, None)
     for bad in (0, -5.0, float("nan"), float("inf"), True, "512"):
         with pytest.raises(ValueError, match="focal_px"):
-            rp.PoseSettings(focal_px=bad)
+            rp.PoseSettings(camera={"focal_px": bad})
 
 
 # ---------------------------------------------------------------------------------------------
@@ -263,7 +263,7 @@ def test_object_frame_centers_scales_and_levels():
     d = rng.normal(size=(4000, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     pts = c0 + d[:, :1] * 1.0 * a + d[:, 1:2] * 0.6 * b + d[:, 2:3] * 0.4 * u
-    s = rp.PoseSettings(bbox_percentile=0.0, margin=0.1, hull_resolution=0)
+    s = rp.PoseSettings(frame={"bbox_percentile": 0.0, "margin": 0.1, "hull_resolution": 0})
     sim, info = rp.object_frame(cams, pts, np.ones(len(pts), bool), {}, s)
     q = sim.apply(pts)
     np.testing.assert_allclose(sim.apply(c0[None])[0], 0.0, atol=0.02)
@@ -288,7 +288,7 @@ def test_object_frame_box_from_the_visual_hull():
     cams = CameraSet(tuple(frames))
     masks = {c.stem: silhouette(sphere, c) for c in cams}
     pts = sphere.v_pos[sphere.v_pos[:, 0] > 0.3]  # a cap: its box is far too small
-    sim, info = rp.object_frame(cams, pts, np.ones(len(pts), bool), masks, rp.PoseSettings(margin=0.1))
+    sim, info = rp.object_frame(cams, pts, np.ones(len(pts), bool), masks, rp.PoseSettings(frame={"margin": 0.1}))
     assert info["box_source"].startswith("visual hull")
     q = sim.apply(sphere.v_pos)
     assert np.abs(q).max() < 1.0  # the whole sphere is inside the cube
@@ -307,7 +307,7 @@ def test_too_few_registered_views_is_a_clear_error(tmp_path):
         write_exr(lin / f"v{k}.exr", np.repeat(img[:, :, None], 3, 2).astype(np.float32))
     out = tmp_path / "poses"
     with pytest.raises(rp.PoseError) as e:
-        rp.run_poses(lin, out, rp.PoseSettings(mapping_trials=2))
+        rp.run_poses(lin, out, rp.PoseSettings(mapping={"mapping_trials": 2}))
     msg = str(e.value)
     assert "only 0 of 4 views could be registered" in msg
     for k in range(4):
@@ -324,11 +324,11 @@ def test_fewer_views_than_sfm_needs_is_a_clear_error(tmp_path):
     write_exr(lin / "v0.exr", img)
     out = tmp_path / "poses"
     with pytest.raises(rp.PoseError, match=r"linear: 1 view\(s\), but SfM needs at least 3 overlapping photos "
-                                           r"\(poses\.min_registered = 3\).*provide cameras\.json"):
+                                           r"\(poses\.mapping\.min_registered = 3\).*provide cameras\.json"):
         rp.run_poses(lin, out)
     write_exr(lin / "v1.exr", img)
     with pytest.raises(rp.PoseError, match=r"2 view\(s\), but SfM needs at least 4 .*min_registered = 4"):
-        rp.run_poses(lin, out, rp.PoseSettings(min_registered=4))
+        rp.run_poses(lin, out, rp.PoseSettings(mapping={"min_registered": 4}))
     assert not out.exists() and not _leftovers(tmp_path)
 
 
@@ -376,7 +376,8 @@ def test_small_photos_get_a_second_pass_on_enlarged_images(tmp_path_factory):
     capture = synth_capture(tmp_path_factory.getbasetemp(), n_views=32, width=192, height=144, noise=False)
     results = tmp_path_factory.mktemp("sfm_small")
     linear, masks = linearize_and_mask(capture, results)
-    diag = rp.run_poses(linear, results / "poses", _capture_settings(capture, num_threads=1, sift_upsample_retry=True),
+    diag = rp.run_poses(linear, results / "poses", _capture_settings(capture, num_threads=1,
+                                                                    features={"sift_upsample_retry": True}),
                         masks_dir=masks, linear_json=linear / "linear.json")
     retry = diag["sift_upsample_retry"]
     assert retry is not None and retry["registered_before"] < 0.95 * 32, retry
@@ -632,7 +633,7 @@ def test_focal_length_with_a_prior(synthetic_sfm):
     shape = (cam.height, cam.width)
 
     def focal(mode, prior, **kw):
-        r, info = refine(pycolmap.Reconstruction(rec), rp.PoseSettings(num_threads=1, focal_refine=mode, **kw),
+        r, info = refine(pycolmap.Reconstruction(rec), rp.PoseSettings(num_threads=1, camera={"focal_refine": mode, **kw}),
                          shape, prior)
         f = next(iter(r.cameras.values())).mean_focal_length()
         assert np.isfinite(f) and info["reprojection_error_after_px"] < 1.0, info
@@ -665,8 +666,8 @@ def test_focal_length_with_a_prior(synthetic_sfm):
     for bad in ({"focal_refine": "hold"}, {"focal_prior_sigma": 0.0}, {"focal_prior_sigma": float("nan")},
                 {"focal_sigma_scale": 0}, {"focal_sigma_scale": float("inf")}):
         with pytest.raises(ValueError):
-            rp.PoseSettings(**bad)
-    assert focal_with_prior(rec, rp.PoseSettings(focal_refine="fixed"), 123.0)["focal_px"] == 123.0
+            rp.PoseSettings(camera=bad)
+    assert focal_with_prior(rec, rp.PoseSettings(camera={"focal_refine": "fixed"}), 123.0)["focal_px"] == 123.0
 
 
 def test_sfm_on_real_photos(shared_data, tmp_path):
@@ -686,7 +687,7 @@ def test_sfm_on_real_photos(shared_data, tmp_path):
         entries[p.stem] = {"source": f"images/{p.name}", "focal_length_px": K[0, 0] * factor}
     (lin / "linear.json").write_text(json.dumps({"images": entries}))
     t0 = time.perf_counter()
-    diag = rp.run_poses(lin, tmp_path / "poses", rp.PoseSettings(max_num_features=4096),
+    diag = rp.run_poses(lin, tmp_path / "poses", rp.PoseSettings(features={"max_num_features": 4096}),
                         linear_json=lin / "linear.json")
     dt = time.perf_counter() - t0
     print(f"\nsceaux: {diag['registered']}/11 registered, {diag['mean_reprojection_error_px']:.3f} px, "  # noqa: T201

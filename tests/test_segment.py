@@ -8,6 +8,7 @@ import pytest
 from _geometry_scene import icosphere, silhouette, synth_capture
 from _tabletop_scene import TABLETOP_TEST, tabletop_capture
 
+from recon import sections
 from recon.masks import evidence as ev
 from recon.masks import tabletop as sg
 from recon.masks.common import MaskError
@@ -47,10 +48,10 @@ def mug_masks(mug, tmp_path_factory):
 def table_only():
     """Cameras of a tabletop capture and exact renders of the bare table (Lambertian wood, the
     flash at each camera: I a_d / pi * h / r^3), no object."""
-    s = SynthSettings(**{**TABLETOP_TEST, "n_views": 16, "width": 192, "height": 144})
+    s = sections.replace(SynthSettings(), **{**TABLETOP_TEST, "n_views": 16, "width": 192, "height": 144})
     cams = tabletop_cameras(s)
     plane = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.8)
-    half = s.table_half_size
+    half = s.tabletop.table_half_size
     tex = table_texture(256, half, seed=4)
     images = []
     for cam in cams:
@@ -66,7 +67,7 @@ def table_only():
 
 # ---- geometry ----
 def test_plane_homography_maps_plane_points():
-    cams = tabletop_cameras(SynthSettings(**{**TABLETOP_TEST, "n_views": 6}))
+    cams = tabletop_cameras(sections.replace(SynthSettings(), **{**TABLETOP_TEST, "n_views": 6}))
     plane = SupportPlane(np.array([0.1, -0.05, 1.0]), 0.8)
     rng = np.random.default_rng(0)
     pts = plane.project(rng.uniform(-1.5, 1.5, (50, 3)))
@@ -79,7 +80,7 @@ def test_plane_homography_maps_plane_points():
 
 
 def test_plane_points_and_flash_shading():
-    cams = tabletop_cameras(SynthSettings(**{**TABLETOP_TEST, "n_views": 3}))
+    cams = tabletop_cameras(sections.replace(SynthSettings(), **{**TABLETOP_TEST, "n_views": 3}))
     plane = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.8)
     cam = cams.frames[1]
     P, hit = plane_points(cam, plane)
@@ -111,7 +112,7 @@ def test_graph_cut_recovers_a_region():
 def test_carve_tolerates_a_bad_view():
     """A sphere standing on the plane: the hull holds it even when one view's mask is empty, and
     its projection covers every silhouette."""
-    cams = tabletop_cameras(SynthSettings(**{**TABLETOP_TEST, "n_views": 12, "width": 96, "height": 72}))
+    cams = tabletop_cameras(sections.replace(SynthSettings(), **{**TABLETOP_TEST, "n_views": 12, "width": 96, "height": 72}))
     ball = icosphere(3)
     ball = Mesh(ball.v_pos * 0.6 + [0.0, 0.0, -0.2], ball.t_pos_idx)
     plane = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.8)

@@ -44,7 +44,7 @@ class LinearizeSettings:
         Longest side of the linear images in pixels (0 = the photos' own size). Larger photos are
         reduced by area averaging in linear space (a clipped-pixel mask marks every output pixel
         that any clipped photo pixel touches) and the focal length in pixels follows. The
-        default, 1600, is the largest size a later stage reads: SIFT runs at ``poses.max_image_size``
+        default, 1600, is the largest size a later stage reads: SIFT runs at ``poses.features.max_image_size``
         (1600) and the presets optimize at 128-512 px. A 12-MP photo (4032 x 3024) becomes
         1600 x 1200: 6.3x less disk, memory and time in every later stage.
     half_float : bool

@@ -66,8 +66,8 @@ def sift_upsample_factor(settings: PoseSettings, shape) -> int:
     registered and the pose errors halved (0.47 -> 0.25 degree), while on the noisy renders of
     the test captures the enlarged pass split the model (so it is kept only when it registers
     more views)."""
-    if settings.sift_upsample > 0:
-        return int(settings.sift_upsample)
+    if settings.features.sift_upsample > 0:
+        return int(settings.features.sift_upsample)
     return 2 if max(shape) < 400 else 1
 
 
@@ -119,23 +119,23 @@ COLMAP_PEAK_THRESHOLD = 0.0067
 
 
 def peak_threshold(settings: PoseSettings, shape) -> float:
-    """SIFT's peak threshold for SIFT images of ``shape`` (H, W): ``settings.peak_threshold``, or
+    """SIFT's peak threshold for SIFT images of ``shape`` (H, W): ``settings.features.peak_threshold``, or
     with 0 :data:`LOW_PEAK_THRESHOLD` below ``peak_threshold_size`` px and COLMAP's 0.0067 from
     it. On the 33 real skull photos at 1600 px, 0.001 found 9-16k features per view (the
     8192 cap counts before orientations), mostly at the finest scales, where ISO 800 noise and
     the moving flash's shading change from view to view: 0.0067 kept 4.7k, registered as many
     views (guided matching: 32/33 against 27/33 for the 4096 largest at 0.001) and matched 2-4x
     faster (docs/sfm_speed.md)."""
-    if settings.peak_threshold > 0:
-        return float(settings.peak_threshold)
-    return COLMAP_PEAK_THRESHOLD if max(shape) >= settings.peak_threshold_size else LOW_PEAK_THRESHOLD
+    if settings.features.peak_threshold > 0:
+        return float(settings.features.peak_threshold)
+    return COLMAP_PEAK_THRESHOLD if max(shape) >= settings.features.peak_threshold_size else LOW_PEAK_THRESHOLD
 
 
 def verify_max_error(settings: PoseSettings, shape) -> float:
     """RANSAC threshold of the two-view verification. COLMAP's 4 px suits large photos; on
     small images it lets chance matches of repeated texture pass as verified pairs."""
-    if settings.verify_max_error > 0:
-        return float(settings.verify_max_error)
+    if settings.matching.verify_max_error > 0:
+        return float(settings.matching.verify_max_error)
     return float(np.clip(0.004 * max(shape), 1.0, 4.0))
 
 
@@ -144,18 +144,18 @@ def extract_and_match(db: Path, images: Path, n_views: int, settings: PoseSettin
     import pycolmap
 
     t0 = time.perf_counter()
-    reader = pycolmap.ImageReaderOptions(camera_model=settings.camera_model)
+    reader = pycolmap.ImageReaderOptions(camera_model=settings.camera.camera_model)
     if feature_masks is not None:
         reader.mask_path = str(feature_masks)
     if f_prior is not None:
-        cam = pycolmap.Camera.create_from_model_name(1, settings.camera_model, f_prior, shape[1], shape[0])
+        cam = pycolmap.Camera.create_from_model_name(1, settings.camera.camera_model, f_prior, shape[1], shape[0])
         reader.camera_params = ",".join(f"{v:.10g}" for v in cam.params)
     sift = pycolmap.SiftExtractionOptions(
-        max_num_features=max_features or settings.max_num_features, peak_threshold=peak_threshold(settings, shape),
-        estimate_affine_shape=settings.affine_features, domain_size_pooling=settings.affine_features,
+        max_num_features=max_features or settings.features.max_num_features, peak_threshold=peak_threshold(settings, shape),
+        estimate_affine_shape=settings.features.affine_features, domain_size_pooling=settings.features.affine_features,
     )
     extraction = pycolmap.FeatureExtractionOptions(
-        max_image_size=settings.max_image_size, num_threads=settings.num_threads, sift=sift
+        max_image_size=settings.features.max_image_size, num_threads=settings.num_threads, sift=sift
     )
     pycolmap.extract_features(
         db, images, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
@@ -163,11 +163,11 @@ def extract_and_match(db: Path, images: Path, n_views: int, settings: PoseSettin
     )
     t1 = time.perf_counter()
     matching = pycolmap.FeatureMatchingOptions(num_threads=settings.num_threads,
-                                               guided_matching=settings.guided_matching)
-    matching.sift.max_ratio = settings.max_ratio
-    verification = pycolmap.TwoViewGeometryOptions(min_num_inliers=settings.min_num_inliers)
+                                               guided_matching=settings.matching.guided_matching)
+    matching.sift.max_ratio = settings.matching.max_ratio
+    verification = pycolmap.TwoViewGeometryOptions(min_num_inliers=settings.matching.min_num_inliers)
     verification.ransac.max_error = verify_max_error(settings, shape)
-    verification.ransac.random_seed = settings.seed  # unseeded, the verified pairs change run to run
+    verification.ransac.random_seed = settings.trial_seed()  # unseeded, the verified pairs change run to run
     kind = matcher_kind(settings, n_views)
     info = {}
     if kind == "exhaustive":
@@ -176,22 +176,22 @@ def extract_and_match(db: Path, images: Path, n_views: int, settings: PoseSettin
     elif kind == "ordered":
         info = _match_ordered(db, n_views, settings, matching, verification)
     else:
-        pairing = pycolmap.SequentialPairingOptions(overlap=settings.sequential_overlap, quadratic_overlap=True)
+        pairing = pycolmap.SequentialPairingOptions(overlap=settings.matching.sequential_overlap, quadratic_overlap=True)
         pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
                                   verification_options=verification, device=pycolmap.Device.cpu)
     t2 = time.perf_counter()
-    info = {**info, "peak_threshold": peak_threshold(settings, shape), "guided_matching": settings.guided_matching}
+    info = {**info, "peak_threshold": peak_threshold(settings, shape), "guided_matching": settings.matching.guided_matching}
     return {"matcher": kind, "extract_s": t1 - t0, "match_s": t2 - t1, "matching": info}
 
 
 def matcher_kind(settings: PoseSettings, n_views: int) -> str:
-    """The matcher that runs: ``settings.matcher``, or for ``auto`` exhaustive up to
+    """The matcher that runs: ``settings.matching.matcher``, or for ``auto`` exhaustive up to
     ``exhaustive_max_views`` views (few pairs: every pair is cheap insurance) and ``ordered``
     beyond (see :mod:`recon.poses.pairs`; it falls back to exhaustive when the order does not
     hold)."""
-    if settings.matcher != "auto":
-        return settings.matcher
-    return "exhaustive" if n_views <= settings.exhaustive_max_views else "ordered"
+    if settings.matching.matcher != "auto":
+        return settings.matching.matcher
+    return "exhaustive" if n_views <= settings.matching.exhaustive_max_views else "ordered"
 
 
 def _image_ids(db) -> list[int]:
@@ -254,17 +254,17 @@ def _match_ordered(db_path: Path, n_views: int, settings: PoseSettings, matching
     try:
         ids = _image_ids(db)
         names = {im.image_id: im.name for im in db.read_all_images()}
-        seq = ordered_pairs(len(ids), settings.ordered_neighbors, wrap=True)
+        seq = ordered_pairs(len(ids), settings.matching.ordered_neighbors, wrap=True)
         descriptors = [np.asarray(db.read_descriptors(i).data) for i in ids]
     finally:
         db.close()
-    sim = similarity(descriptors, seed=settings.seed)  # retrieval, and the bridges between groups
-    loops = retrieval_pairs(descriptors, settings.retrieval_neighbors, exclude=seq, sim=sim)
+    sim = similarity(descriptors, seed=settings.trial_seed())  # retrieval, and the bridges between groups
+    loops = retrieval_pairs(descriptors, settings.matching.retrieval_neighbors, exclude=seq, sim=sim)
     pairs = seq | loops
     t1 = time.perf_counter()
     _match_list(db_path, pairs, ids, names, matching, verification)
     matched = set(pairs)
-    verified = _read_verified(db_path, ids, settings.min_num_inliers)
+    verified = _read_verified(db_path, ids, settings.matching.min_num_inliers)
     ok, why = ordered_matching_ok(len(ids), verified)
     info = {"pairs": len(pairs), "ordered_pairs": len(seq), "retrieval_pairs": len(loops),
             "retrieval_s": t1 - t0, "verified_pairs": len(verified), "order_check": why,
@@ -277,17 +277,17 @@ def _match_ordered(db_path: Path, n_views: int, settings: PoseSettings, matching
         pycolmap.match_exhaustive(db_path, matching_options=matching, verification_options=verification,
                                   device=pycolmap.Device.cpu)
         return info
-    for r in range(settings.bridge_rounds):
+    for r in range(settings.matching.bridge_rounds):
         parts = groups(len(ids), verified)
         if len(parts) == 1:
             break
-        new = bridge_pairs(parts, sim, exclude=matched, per_group_pair=settings.bridge_pairs * (r + 1),
-                           window=settings.bridge_window + r)
+        new = bridge_pairs(parts, sim, exclude=matched, per_group_pair=settings.matching.bridge_pairs * (r + 1),
+                           window=settings.matching.bridge_window + r)
         if not new:
             break
         _match_list(db_path, new, ids, names, matching, verification, f"bridge{r}.txt")
         matched |= new
-        verified = _read_verified(db_path, ids, settings.min_num_inliers)
+        verified = _read_verified(db_path, ids, settings.matching.min_num_inliers)
         left = groups(len(ids), verified)
         info["bridges"].append({"groups": [len(g) for g in parts], "pairs": len(new),
                                 "verified": len(new & verified), "groups_after": [len(g) for g in left]})
@@ -301,7 +301,7 @@ def _match_ordered(db_path: Path, n_views: int, settings: PoseSettings, matching
         if rest:
             _match_list(db_path, rest, ids, names, matching, verification, "cross_groups.txt")
             matched |= rest
-            verified = _read_verified(db_path, ids, settings.min_num_inliers)
+            verified = _read_verified(db_path, ids, settings.matching.min_num_inliers)
         info["cross_group_pairs"] = len(rest)
     info["pairs"] = len(matched)
     info["verified_pairs"] = len(verified)

@@ -92,18 +92,18 @@ def object_frame(cams_colmap: CameraSet, points: np.ndarray, in_mask: np.ndarray
         source = "camera centers"
     R = _rotation_from_axes(z, pts, centers[0])
     q = pts @ R.T
-    p = settings.bbox_percentile
+    p = settings.frame.bbox_percentile
     lo, hi = np.percentile(q, p, axis=0), np.percentile(q, 100 - p, axis=0)
     info = {"box_source": source, "n_points": int(len(pts))}
-    if settings.hull_resolution > 0 and len(masks) >= 2:
+    if settings.frame.hull_resolution > 0 and len(masks) >= 2:
         c_box = R.T @ (0.5 * (lo + hi))
         half = float(np.max(hi - lo))  # a cube twice the sparse box's longest side
         rotated = rotate_cameras(cams_colmap, Similarity(1.0, R, np.zeros(3)))
         for _ in range(2):
-            box, why = _hull_box(rotated, masks, R @ c_box, half, settings.hull_resolution)
+            box, why = _hull_box(rotated, masks, R @ c_box, half, settings.frame.hull_resolution)
             if box is not None:
                 lo, hi = box
-                info["box_source"] = f"visual hull ({settings.hull_resolution}^3) of the masks"
+                info["box_source"] = f"visual hull ({settings.frame.hull_resolution}^3) of the masks"
                 break
             if why == "empty":
                 log.warning("coarse visual hull is empty: masks and cameras disagree; using the sparse box")
@@ -115,7 +115,7 @@ def object_frame(cams_colmap: CameraSet, points: np.ndarray, in_mask: np.ndarray
     extent = float(np.max(hi - lo))
     if extent <= 0:
         raise PoseError("the sparse reconstruction has no extent: cannot place the object")
-    s = 2.0 * (1.0 - settings.margin) / extent
+    s = 2.0 * (1.0 - settings.frame.margin) / extent
     sim = Similarity(s, R, -s * center)
     info.update({"box_lo": lo.tolist(), "box_hi": hi.tolist()})
     return sim, info

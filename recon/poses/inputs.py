@@ -85,12 +85,12 @@ def given_focal(linear_json: Path | None, focal_px: float) -> float:
 
 
 def prior_focal(settings, linear_json: Path | None, stems: list[str]) -> tuple[float | None, str | None]:
-    """(the focal length prior in pixels of the linear views, its source): ``poses.focal_px``
+    """(the focal length prior in pixels of the linear views, its source): ``poses.camera.focal_px``
     (a calibration) when set, else the photos' EXIF (:func:`focal_prior`; the source names the
     tags, linear.json's ``focal_length_source``: "EXIF (35mm_equivalent)", "EXIF
     (focal_plane_resolution)"), else (None, None)."""
-    if settings.focal_px is not None:
-        return given_focal(linear_json, settings.focal_px), "poses.focal_px"
+    if settings.camera.focal_px is not None:
+        return given_focal(linear_json, settings.camera.focal_px), "poses.camera.focal_px"
     f = focal_prior(linear_json, stems)
     if f is None:
         return None, None
@@ -105,8 +105,8 @@ def prior_sigma(settings, source: str | None) -> float:
     (:func:`prior_focal`): ``focal_plane_prior_sigma`` for EXIF's focal plane resolution (a
     DSLR's, a few percent off), ``focal_prior_sigma`` otherwise."""
     if source is not None and "focal_plane_resolution" in source:
-        return float(settings.focal_plane_prior_sigma)
-    return float(settings.focal_prior_sigma)
+        return float(settings.camera.focal_plane_prior_sigma)
+    return float(settings.camera.focal_prior_sigma)
 
 
 def image_names(linear_json: Path | None, stems: list[str]) -> dict[str, str]:

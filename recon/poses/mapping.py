@@ -118,9 +118,9 @@ def mapper_sequence(settings: PoseSettings, has_prior: bool, n: int | None = Non
     alternating again with new seeds. With a focal length prior (EXIF), the held-intrinsics
     mapper goes first: on small or weakly textured captures free intrinsics drifted in most
     trials (the demo: 3 of 4 trials "bogus intrinsics", f 6x the prior), the held ones never."""
-    n = settings.mapping_trials if n is None else n
-    if settings.mapper != "auto":
-        return [settings.mapper] * n
+    n = settings.mapping.mapping_trials if n is None else n
+    if settings.mapping.mapper != "auto":
+        return [settings.mapping.mapper] * n
     if has_prior:
         cycle = ["incremental_fixed", "global", "incremental", "incremental_fixed"]
     else:
@@ -180,10 +180,10 @@ def map_views(db: Path, images: Path, sparse_root: Path, settings: PoseSettings,
     trials = []
     partners = []  # (mapper, model, full, best-tuple, consistent): sane trials holding min_registered_fraction
     # up to twice the trials while no model is both plausible and consistent with the masks
-    for trial, kind in enumerate(mapper_sequence(settings, f_prior is not None, 2 * settings.mapping_trials)):
-        if trial >= settings.mapping_trials and best is not None and best[0][0] and best[0][1]:
+    for trial, kind in enumerate(mapper_sequence(settings, f_prior is not None, 2 * settings.mapping.mapping_trials)):
+        if trial >= settings.mapping.mapping_trials and best is not None and best[0][0] and best[0][1]:
             break
-        seed = settings.seed + trial
+        seed = settings.trial_seed(trial)
         pycolmap.set_random_seed(seed)
         out = sparse_root / f"trial{trial}"
         out.mkdir(parents=True, exist_ok=True)
@@ -191,7 +191,7 @@ def map_views(db: Path, images: Path, sparse_root: Path, settings: PoseSettings,
         try:
             if kind == "global":
                 opts = pycolmap.GlobalPipelineOptions(
-                    num_threads=settings.num_threads, random_seed=seed, min_num_matches=settings.min_num_inliers
+                    num_threads=settings.num_threads, random_seed=seed, min_num_matches=settings.matching.min_num_inliers
                 )
                 models = pycolmap.global_mapping(db, images, out, options=opts)
                 if not models:  # its retriangulation step can fail on small images: keep the BA result
@@ -199,12 +199,12 @@ def map_views(db: Path, images: Path, sparse_root: Path, settings: PoseSettings,
                     models = pycolmap.global_mapping(db, images, out, options=opts)
             else:
                 opts = pycolmap.IncrementalPipelineOptions(
-                    num_threads=settings.num_threads, random_seed=seed, min_num_matches=settings.min_num_inliers,
+                    num_threads=settings.num_threads, random_seed=seed, min_num_matches=settings.matching.min_num_inliers,
                     min_model_size=3,
                 )
-                opts.mapper.init_min_num_inliers = settings.init_min_num_inliers
-                opts.mapper.abs_pose_min_num_inliers = settings.abs_pose_min_num_inliers
-                opts.max_runtime_seconds = int(settings.max_mapping_seconds)
+                opts.mapper.init_min_num_inliers = settings.mapping.init_min_num_inliers
+                opts.mapper.abs_pose_min_num_inliers = settings.mapping.abs_pose_min_num_inliers
+                opts.max_runtime_seconds = int(settings.mapping.max_mapping_seconds)
                 if kind == "incremental_fixed":
                     opts.ba_refine_focal_length = False
                     opts.ba_refine_extra_params = False
@@ -215,11 +215,11 @@ def map_views(db: Path, images: Path, sparse_root: Path, settings: PoseSettings,
             log.warning("mapping trial %d (%s) failed: %s", trial, kind, e)
             models = {}
         models = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
-        weak = _drop_weak_views(models[0], settings.min_view_points) if models else {}
+        weak = _drop_weak_views(models[0], settings.mapping.min_view_points) if models else {}
         n_reg = models[0].num_reg_images() if models else 0
         sane = bool(models) and intrinsics_ok(models[0], shape, f_prior)
         sil = silhouette_consistency(models[0], masks or {}, up) if models else None
-        consistent = sil is None or sil >= settings.min_silhouette_consistency
+        consistent = sil is None or sil >= settings.mapping.min_silhouette_consistency
         trials.append({"mapper": kind, "seed": seed, "registered": n_reg, "weak_views_dropped": weak,
                        "models": [m.num_reg_images() for m in models], "intrinsics_ok": sane,
                        "silhouette_consistency": sil, "seconds": time.perf_counter() - t0})
@@ -229,13 +229,13 @@ def map_views(db: Path, images: Path, sparse_root: Path, settings: PoseSettings,
                  "" if sane or not models else ", bogus intrinsics")
         # ranking: nearly consistent (within SILHOUETTE_SLACK) counts as consistent, so that a model
         # with more views is not lost to a smaller one that happens to pass the threshold
-        near = sil is None or sil >= settings.min_silhouette_consistency - SILHOUETTE_SLACK
+        near = sil is None or sil >= settings.mapping.min_silhouette_consistency - SILHOUETTE_SLACK
         score = (sane, near, n_reg, sil or 0.0)
         if models and (best is None or score > best[0]):
             best = (score, models[0], models, trial, weak)
-        if sane and consistent and n_reg >= settings.accept_fraction * n_views:
+        if sane and consistent and n_reg >= settings.mapping.accept_fraction * n_views:
             break
-        if not sane or n_reg < settings.min_registered_fraction * n_views:
+        if not sane or n_reg < settings.mapping.min_registered_fraction * n_views:
             continue
         # masks that disagree with every model (the masks stage's masks of an object on a table
         # hold some of the lit table: a right model scored 0.87 on an 80-view tabletop capture,
@@ -246,7 +246,7 @@ def map_views(db: Path, images: Path, sparse_root: Path, settings: PoseSettings,
         # The partner may hold fewer views if it is of the other family (global against
         # incremental: independent methods), as long as it holds min_registered_fraction of
         # them (the skull: incremental 32/33 views, global 21 of them).
-        this = (kind, models[0], n_reg >= settings.accept_fraction * n_views, (score, models[0], models, trial, weak),
+        this = (kind, models[0], n_reg >= settings.mapping.accept_fraction * n_views, (score, models[0], models, trial, weak),
                 consistent)
         accepted = None
         if this[2] and not consistent:
@@ -254,7 +254,7 @@ def map_views(db: Path, images: Path, sparse_root: Path, settings: PoseSettings,
                 if _partners(prev, this):
                     agree = relative_rotations_agree(prev[1], models[0])
                     trials[-1]["agrees_with_other_mapper_deg"] = agree
-                    if agree is not None and agree < settings.agree_deg:
+                    if agree is not None and agree < settings.mapping.agree_deg:
                         accepted = (this, prev, agree)
                         break
         if accepted is None:
@@ -262,7 +262,7 @@ def map_views(db: Path, images: Path, sparse_root: Path, settings: PoseSettings,
                 if prev[2] and not prev[4] and _partners(this, prev):
                     agree = relative_rotations_agree(prev[1], models[0])
                     trials[-1]["agrees_with_other_mapper_deg"] = agree
-                    if agree is not None and agree < settings.agree_deg:
+                    if agree is not None and agree < settings.mapping.agree_deg:
                         accepted = (prev, this, agree)
                         break
         if accepted is not None:
@@ -375,7 +375,7 @@ def refine(rec, settings: PoseSettings, shape, f_prior: float | None = None, pri
         ba = pycolmap.BundleAdjustmentOptions(print_summary=False, refine_extra_params=refine_extra,
                                               refine_focal_length=refine_focal)
         ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-        ba.ceres.loss_function_scale = settings.refine_loss_scale
+        ba.ceres.loss_function_scale = settings.camera.refine_loss_scale
         ba.ceres.solver_options.num_threads = settings.num_threads
         pycolmap.bundle_adjustment(r, ba)
         return float(r.compute_mean_reprojection_error())
@@ -395,7 +395,7 @@ def refine(rec, settings: PoseSettings, shape, f_prior: float | None = None, pri
         candidates.append(("estimated" if extra else "none", free, e_free))
     else:
         info["rejected_free"] = np.round(np.asarray(next(iter(free.cameras.values())).params), 4).tolist()
-    if extra and settings.distortion_gain >= 0:
+    if extra and settings.camera.distortion_gain >= 0:
         plain = pycolmap.Reconstruction(rec)
         for c in plain.cameras.values():
             p = np.asarray(c.params, dtype=float).copy()
@@ -404,7 +404,7 @@ def refine(rec, settings: PoseSettings, shape, f_prior: float | None = None, pri
         e_plain = adjust(plain, False)
         info["reprojection_error_no_distortion_px"] = e_plain
         if plausible(plain):
-            if not candidates or e_plain <= candidates[0][2] * (1.0 + settings.distortion_gain):
+            if not candidates or e_plain <= candidates[0][2] * (1.0 + settings.camera.distortion_gain):
                 candidates.insert(0, ("none", plain, e_plain))
         else:
             info["rejected_no_distortion"] = np.round(np.asarray(next(iter(plain.cameras.values())).params),
@@ -416,7 +416,7 @@ def refine(rec, settings: PoseSettings, shape, f_prior: float | None = None, pri
         log.warning("robust refinement: free intrinsics drifted to implausible values %s; kept the mapped "
                     "camera", info.get("rejected_free"))
     name, chosen, e = candidates[0]
-    if f_prior is not None and settings.focal_refine != "free":
+    if f_prior is not None and settings.camera.focal_refine != "free":
         info["focal"] = focal_with_prior(chosen, settings, f_prior, prior_sigma)
         c = next(iter(chosen.cameras.values()))
         c.params = np.where(np.isin(np.arange(len(c.params)), list(c.focal_length_idxs())),
@@ -490,28 +490,28 @@ def focal_with_prior(rec, settings: PoseSettings, f_prior: float, prior_sigma: f
     of the variance (the cost did not rise), the prior. ``prior_sigma``: the prior's relative
     standard deviation (default ``focal_prior_sigma``; :func:`recon.poses.inputs.prior_sigma`).
     """
-    s_prior = settings.focal_prior_sigma if prior_sigma is None else float(prior_sigma)
+    s_prior = settings.camera.focal_prior_sigma if prior_sigma is None else float(prior_sigma)
     f_ba = float(next(iter(rec.cameras.values())).mean_focal_length())
-    out = {"mode": settings.focal_refine, "prior_px": float(f_prior), "prior_sigma": s_prior,
+    out = {"mode": settings.camera.focal_refine, "prior_px": float(f_prior), "prior_sigma": s_prior,
            "adjusted_px": f_ba, "adjusted_sigma": None}
     f = float(f_prior)
-    if settings.focal_refine == "auto":
+    if settings.camera.focal_refine == "auto":
         sigma = focal_sigma(rec, settings)
         out["adjusted_sigma"] = sigma
         if sigma is not None:
-            s_ba = settings.focal_sigma_scale * sigma
+            s_ba = settings.camera.focal_sigma_scale * sigma
             z = abs(f_ba / f_prior - 1.0) / float(np.hypot(s_ba, s_prior))
             out["disagreement_sigma"] = z
             if z > 5.0:  # the photos contradict the prior (a digital zoom, a crop, a wrong tag)
                 f = f_ba
                 log.warning("focal length: the adjustment's %.2f px and the prior %.2f px differ by %.1f standard "
-                            "deviations: the prior is not used (poses.focal_refine: fixed holds it)", f_ba, f_prior, z)
+                            "deviations: the prior is not used (poses.camera.focal_refine: fixed holds it)", f_ba, f_prior, z)
             else:
                 f = (f_ba / s_ba**2 + f_prior / s_prior**2) / (1.0 / s_ba**2 + 1.0 / s_prior**2)
     out["focal_px"] = f
     log.info("focal length: %.2f px (prior %.2f px +- %.1f%%, adjusted %.2f px +- %s; %s)", f, f_prior,
              100 * s_prior, f_ba,
-             "?" if out["adjusted_sigma"] is None else f"{100 * out['adjusted_sigma']:.2f}%", settings.focal_refine)
+             "?" if out["adjusted_sigma"] is None else f"{100 * out['adjusted_sigma']:.2f}%", settings.camera.focal_refine)
     return out
 
 
@@ -532,7 +532,7 @@ def unregistered_reasons(db_path: Path, stems: list[str], registered: set[str], 
         best: dict[str, list] = {s: [] for s in stems}
         for pid, n in zip(pair_ids, inliers, strict=True):
             a, b = pycolmap.pair_id_to_image_pair(pid)
-            if a in stem_of and b in stem_of and n >= settings.min_num_inliers:
+            if a in stem_of and b in stem_of and n >= settings.matching.min_num_inliers:
                 best[stem_of[a]].append((n, stem_of[b]))
                 best[stem_of[b]].append((n, stem_of[a]))
         reasons = {}
@@ -545,7 +545,7 @@ def unregistered_reasons(db_path: Path, stems: list[str], registered: set[str], 
             if nkp < 100:
                 reasons[s] = f"only {nkp} SIFT features (too little texture, blur or a dark image)"
             elif not partners:
-                reasons[s] = (f"{nkp} features but no verified match (>= {settings.min_num_inliers} inliers) "
+                reasons[s] = (f"{nkp} features but no verified match (>= {settings.matching.min_num_inliers} inliers) "
                               "with any other view (too little overlap)")
             elif other is not None:
                 mates = ", ".join(o for o in other if o != s)
@@ -556,7 +556,7 @@ def unregistered_reasons(db_path: Path, stems: list[str], registered: set[str], 
             else:
                 n, p = next((n, p) for n, p in partners if p in registered)
                 reasons[s] = (f"best match with a registered view: {n} inliers with {p}; the mapper could not "
-                              f"place it (needs >= {settings.abs_pose_min_num_inliers} 2D-3D inliers)")
+                              f"place it (needs >= {settings.mapping.abs_pose_min_num_inliers} 2D-3D inliers)")
         return reasons
     finally:
         db.close()

@@ -8,11 +8,12 @@ import math
 import os
 import shutil
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
+from recon import sections
 from recon.io.atomic import atomic_dir, atomic_path
 from recon.io.cameras import Camera, CameraError, CameraSet, load_cameras, save_cameras
 from recon.io.images import read_exr
@@ -193,9 +194,9 @@ def _features_and_mapping(linear_dir: Path, work: Path, stems: list[str], settin
     t0 = time.perf_counter()
     images = work / "images"
     images.mkdir(parents=True)
-    feature_masks = work / "feature_masks" if settings.highlight_factor > 0 else None
-    shapes, up = write_sift_images(linear_dir, stems, images, masks, feature_masks, settings.highlight_factor,
-                                   settings.sift_encoding, settings)
+    feature_masks = work / "feature_masks" if settings.features.highlight_factor > 0 else None
+    shapes, up = write_sift_images(linear_dir, stems, images, masks, feature_masks, settings.features.highlight_factor,
+                                   settings.features.sift_encoding, settings)
     shape = shapes[stems[0]]
     timings["sift_images_s"] = time.perf_counter() - t0
     log.info("SfM on %d views of %dx%d (SIFT on %dx enlarged images), focal prior %s", len(stems), shape[1],
@@ -205,8 +206,8 @@ def _features_and_mapping(linear_dir: Path, work: Path, stems: list[str], settin
     shape_sift = (shape[0] * up, shape[1] * up)
     db = work / "database.db"
     timings.update(extract_and_match(db, images, len(stems), settings, f_sift, shape_sift, feature_masks,
-                                     max_features=settings.max_num_features if up == 1
-                                     else min(settings.max_num_features, settings.max_num_features_upsampled)))
+                                     max_features=settings.features.max_num_features if up == 1
+                                     else min(settings.features.max_num_features, settings.features.max_num_features_upsampled)))
     matcher = (timings.pop("matcher"), timings.pop("matching"))
     t0 = time.perf_counter()
     rec, models, trials, trial, weak = map_views(db, images, work / "mapping", settings, len(stems), shape_sift,
@@ -220,10 +221,10 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     timings = {}
     stems = linear_stems(linear_dir)
     n = len(stems)
-    if n < settings.min_registered:
+    if n < settings.mapping.min_registered:
         raise PoseError(
-            f"{linear_dir}: {n} view(s), but SfM needs at least {settings.min_registered} overlapping photos "
-            f"(poses.min_registered = {settings.min_registered}); photograph the object from more sides "
+            f"{linear_dir}: {n} view(s), but SfM needs at least {settings.mapping.min_registered} overlapping photos "
+            f"(poses.mapping.min_registered = {settings.mapping.min_registered}); photograph the object from more sides "
             "(a view every 10-15 degrees), or provide cameras.json in the capture so SfM is skipped"
         )
     light_known = settings.light_intensity is not None
@@ -233,21 +234,21 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     if f_prior:
         log.info("focal length prior %.1f px +- %.0f%% from %s", f_prior, 100 * prior_sigma(settings, f_source), f_source)
     else:
-        log.info("no focal length prior (no usable EXIF focal length, no poses.focal_px)")
+        log.info("no focal length prior (no usable EXIF focal length, no poses.camera.focal_px)")
     masks = read_masks(masks_dir, stems)
     work = tmp / "work"
     rec, models, trials, trial, weak, up, shape, db, matcher = _features_and_mapping(
         linear_dir, work, stems, settings, masks, f_prior, timings)
     n_reg = len(rec.reg_image_ids()) if rec is not None else 0
     retry = None
-    if settings.sift_upsample_retry and up == 1 and n_reg < settings.accept_fraction * n \
-            and sift_upsample_factor(replace(settings, sift_upsample=0), shape) > 1:
+    if settings.features.sift_upsample_retry and up == 1 and n_reg < settings.mapping.accept_fraction * n \
+            and sift_upsample_factor(sections.replace(settings, sift_upsample=0), shape) > 1:
         # small photos: too few SIFT features on some views; once more on enlarged images
         # (sift_upsample_factor), kept when it registers more views
         log.info("%d of %d views registered; SfM again with SIFT on enlarged images", n_reg, n)
         t_retry = {}
         again = _features_and_mapping(linear_dir, tmp / "work_upsampled", stems,
-                                      replace(settings, sift_upsample=0), masks, f_prior, t_retry)
+                                      sections.replace(settings, sift_upsample=0), masks, f_prior, t_retry)
         n_again = len(again[0].reg_image_ids()) if again[0] is not None else 0
         retry = {"registered_before": n_reg, "registered_upsampled": n_again, "kept": n_again > n_reg,
                  "seconds": sum(t_retry.values())}
@@ -270,13 +271,13 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     reasons = unregistered_reasons(db, stems, registered, settings, others)
     for s, k in weak.items():
         reasons[s] = (f"posed from only {k} 3D points seen by the registered views (needs >= "
-                      f"{settings.min_view_points}): too little overlap with the other views")
-    if len(registered) < settings.min_registered or len(registered) < settings.min_registered_fraction * n:
+                      f"{settings.mapping.min_view_points}): too little overlap with the other views")
+    if len(registered) < settings.mapping.min_registered or len(registered) < settings.mapping.min_registered_fraction * n:
         lines = "\n".join(f"  {s}: {reasons[s]}" for s in sorted(reasons))
         split = f" The views split into separate models ({len(models)} models)." if len(models) > 1 else ""
         raise PoseError(
             f"{linear_dir.parent}: only {len(registered)} of {n} views could be registered by SfM "
-            f"(need >= {settings.min_registered} and >= {settings.min_registered_fraction:.0%}).{split}\n"
+            f"(need >= {settings.mapping.min_registered} and >= {settings.mapping.min_registered_fraction:.0%}).{split}\n"
             f"Unregistered views:\n{lines}\n"
             "What to try: photos with more overlap (a view every 10-15 degrees around the object), "
             "more texture on the object or a textured support, sharper photos; or provide "
@@ -287,7 +288,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
                     "\n".join(f"  {s}: {r}" for s, r in sorted(reasons.items())))
     shutil.rmtree(work / "mapping", ignore_errors=True)
     refinement = {}
-    if settings.refine:
+    if settings.camera.refine:
         rec, refinement = refine(rec, settings, shape_sift, f_sift, prior_sigma(settings, f_source))
     if up > 1:
         rescale_model(rec, shape, up)
@@ -297,7 +298,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     # ---- undistortion to the pinhole camera ----
     t0 = time.perf_counter()
     colmap_cam = next(iter(rec.cameras.values()))
-    pinhole = pinhole_camera(colmap_cam, settings.camera_model)
+    pinhole = pinhole_camera(colmap_cam, settings.camera.camera_model)
     maps = undistort_maps(colmap_cam, pinhole)
     K = pinhole.calibration_matrix()
     names = image_names(linear_json, stems)
@@ -332,7 +333,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     if support.get("found"):
         # the frame was fitted to the masks stage's masks, which hold the lit table: fit it again
         # to the object alone (it fills [-1, 1]^3, z along the table's normal), as in the void
-        refit = _object_frame_on_plane(tmp, settings.margin)
+        refit = _object_frame_on_plane(tmp, settings.frame.margin)
         if refit is not None:
             sim = Similarity(refit.scale * sim.scale, refit.rotation @ sim.rotation,
                              refit.scale * refit.rotation @ sim.translation + refit.translation)
@@ -348,12 +349,12 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     mre = float(rec.compute_mean_reprojection_error())
     above = _points_on_the_object(rec, sim, tmp / "plane.json") if support.get("found") else None
     sil = silhouette_consistency(rec, masks, keep=above)
-    if sil is not None and sil < settings.min_silhouette_consistency:
+    if sil is not None and sil < settings.mapping.min_silhouette_consistency:
         log.warning("only %.0f%% of the object's sparse points (those seen inside the masks%s) project inside "
                     "the other views' masks (a right model: > %.0f%%): the cameras and the masks disagree; either "
                     "the masks miss parts of the object (check results/<capture>/masks) or SfM found a wrong (e.g. "
                     "mirrored) solution; more texture on the object or a textured support helps SfM", 100 * sil,
-                    ", above the table" if above is not None else "", 100 * settings.min_silhouette_consistency)
+                    ", above the table" if above is not None else "", 100 * settings.mapping.min_silhouette_consistency)
     diag = {
         "source": "sfm",
         "views": n,
@@ -375,7 +376,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
         "matching": matching,
         "sift_upsample": up,
         "sift_upsample_retry": retry,
-        "mapper": settings.mapper,
+        "mapper": settings.mapping.mapper,
         "trials": trials,
         "chosen_trial": trial,
         "refinement": refinement,

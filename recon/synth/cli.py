@@ -14,9 +14,9 @@ Examples:
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
 
+from recon import sections
 from recon.synth.capture import FORMATS, PRESETS, SCENES, SynthSettings, make_capture
 from recon.synth.imaging import TONE_CURVES
 from recon.synth.shapes import OBJECT_KINDS
@@ -101,19 +101,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def settings_from_args(args: argparse.Namespace) -> SynthSettings:
-    """The preset (or the defaults) updated with every option given on the command line."""
+    """The preset (or the defaults) updated with every option given on the command line (each
+    option's ``dest`` is the name of its setting, in whichever section: recon.sections.replace)."""
     base = PRESETS[args.preset] if args.preset else SynthSettings()
-    fields = {f.name for f in dataclasses.fields(SynthSettings)}
-    changes = {k: v for k, v in vars(args).items() if k in fields and v is not None}
+    names = sections.flatten(base)
+    changes = {k: v for k, v in vars(args).items() if k in names and v is not None}
     if "width" in changes and "height" not in changes:
         changes["height"] = int(round(changes["width"] * 3 / 4 / 2)) * 2
-    return dataclasses.replace(base, **changes)
+    return sections.replace(base, **changes)
 
 
 def command_line(args: argparse.Namespace) -> str:
     """The shortest command line that gives the same settings (recorded in gt/)."""
-    base = PRESETS[args.preset] if args.preset else SynthSettings()
-    s = settings_from_args(args)
+    base = sections.flatten(PRESETS[args.preset] if args.preset else SynthSettings())
+    s = sections.flatten(settings_from_args(args))
     opts = {"object": "--object", "n_views": "--views", "width": "--res", "height": "--height",
             "fov": "--fov", "distance": "--distance", "format": "--format", "spp": "--spp",
             "seed": "--seed", "light_intensity": "--light-intensity",
@@ -133,17 +134,17 @@ def command_line(args: argparse.Namespace) -> str:
     if args.preset:
         parts += ["--preset", args.preset]
     for key, flag in opts.items():
-        if getattr(s, key) != getattr(base, key) or (key == "height" and s.width != base.width):
-            parts += [flag, str(getattr(s, key))]
+        if s[key] != base[key] or (key == "height" and s["width"] != base["width"]):
+            parts += [flag, str(s[key])]
     for key, flag in (("elevation_range", "--elevations"), ("flash_offset", "--flash-offset"),
                       ("falloff", "--falloff")):
-        if getattr(s, key) != getattr(base, key):
-            parts += [flag, *map(str, getattr(s, key))]
-    if not s.texture_pattern and base.texture_pattern:
+        if s[key] != base[key]:
+            parts += [flag, *map(str, s[key])]
+    if not s["texture_pattern"] and base["texture_pattern"]:
         parts.append("--no-pattern")
     for key, name in flags.items():
-        if getattr(s, key) != getattr(base, key):
-            parts.append(f"--{name}" if getattr(s, key) else f"--no-{name}")
+        if s[key] != base[key]:
+            parts.append(f"--{name}" if s[key] else f"--no-{name}")
     return " ".join(parts)
 
 

@@ -156,14 +156,14 @@ class ViewImaging:
 
 def view_imaging(settings, n_views: int) -> list[ViewImaging]:
     """Per-view exposure and white-balance errors of ``settings`` (SynthSettings), seeded."""
-    rng = np.random.default_rng(np.random.SeedSequence([int(settings.seed), 0xF1A5]))
+    rng = settings.rng("imaging")
     z = rng.standard_normal(n_views)
     u = rng.standard_normal((n_views, 3))
     u -= u.mean(1, keepdims=True)
     out = []
     for k in range(n_views):
-        g = 2.0 ** (settings.exposure_jitter * z[k]) if settings.exposure_jitter > 0 else 1.0
-        wb = np.exp(settings.wb_jitter * u[k]) if settings.wb_jitter > 0 else np.ones(3)
+        g = 2.0 ** (settings.phone.exposure_jitter * z[k]) if settings.phone.exposure_jitter > 0 else 1.0
+        wb = np.exp(settings.phone.wb_jitter * u[k]) if settings.phone.wb_jitter > 0 else np.ones(3)
         out.append(ViewImaging(float(g), tuple(float(x) for x in wb)))
     return out
 
@@ -219,27 +219,27 @@ def imaging_record(settings, cams, views: list[ViewImaging], exposures: list[dic
     xs = np.linspace(0.0, 1.0, 33)
     return {
         "model": "y = x * exposure_gain[k] * white_balance[k][c] * falloff(r); photo = T(y) (recon.synth.imaging)",
-        "flash_offset_camera": [float(x) * s.scale for x in s.flash_offset],
+        "flash_offset_camera": [float(x) * s.scale for x in s.phone.flash_offset],
         "flash_offset_units": "world units of cameras.json, camera axes (x right, y down, z forward)",
         "light_intensity": float(light_intensity),
-        "ambient_fraction": float(s.ambient),
+        "ambient_fraction": float(s.phone.ambient),
         "ambient_radiance": float(l_amb),
-        "exposure_jitter_stops": float(s.exposure_jitter),
+        "exposure_jitter_stops": float(s.phone.exposure_jitter),
         "exposure_gains": g.tolist(),
         "exposure_gains_normalized": (g / np.exp(np.log(g).mean())).tolist(),
-        "white_balance_jitter": float(s.wb_jitter),
+        "white_balance_jitter": float(s.phone.wb_jitter),
         "white_balance_gains": [list(v.wb) for v in views],
         "falloff": {"model": "1 + k1 r^2 + k2 r^4, r = distance from the image centre / half diagonal",
-                    "k1": float(s.falloff[0]), "k2": float(s.falloff[1]),
-                    "dng_gainmap": bool(getattr(s, "falloff_gainmap", False))},
-        "tone_curve": {"name": s.tone_curve, "contrast": float(s.tone_contrast),
-                       "formula": TONE_FORMULAS[s.tone_curve] if s.format == "jpg"
-                       else "srgb(y)" if s.format in ("png8", "png16") else "identity",
+                    "k1": float(s.phone.falloff[0]), "k2": float(s.phone.falloff[1]),
+                    "dng_gainmap": bool(s.phone.falloff_gainmap)},
+        "tone_curve": {"name": s.phone.tone_curve, "contrast": float(s.phone.tone_contrast),
+                       "formula": TONE_FORMULAS[s.phone.tone_curve] if s.photos.format == "jpg"
+                       else "srgb(y)" if s.photos.format in ("png8", "png16") else "identity",
                        "linear_in": xs.tolist(),
-                       "linearized_out": linearized_tone(xs, s.tone_curve, s.tone_contrast).tolist()
-                       if s.format == "jpg" else None,
-                       **({"table": [list(r) for r in TONE_TABLE]} if s.tone_curve == "table" else {}),
-                       **({"white": tone_white(s.tone_curve)} if s.format == "jpg" else {})},
+                       "linearized_out": linearized_tone(xs, s.phone.tone_curve, s.phone.tone_contrast).tolist()
+                       if s.photos.format == "jpg" else None,
+                       **({"table": [list(r) for r in TONE_TABLE]} if s.phone.tone_curve == "table" else {}),
+                       **({"white": tone_white(s.phone.tone_curve)} if s.photos.format == "jpg" else {})},
         "views": [{"image": c.image, "exposure_gain": v.gain, "white_balance": list(v.wb), **e}
                   for c, v, e in zip(cams.frames, views, exposures, strict=True)],
     }

@@ -121,21 +121,21 @@ def add_marker_mat(texture: np.ndarray, half_size: float, square: float) -> dict
 def tabletop_cameras(settings, target=(0.0, 0.0, 0.0)) -> CameraSet:
     """Hand-held rings above the table (see the module docstring); ``settings`` a SynthSettings."""
     s = settings
-    rng = np.random.default_rng(np.random.SeedSequence([int(s.seed), 0x7AB1E]))
-    ext = {"dng": ".dng", "exr": ".exr", "png16": ".png", "png8": ".png", "jpg": ".jpg"}[s.format]
-    K = intrinsics(s.width, s.height, s.fov)
-    lo, hi = s.elevation_range
-    n_rings = max(1, min(s.rings, s.n_views))
+    rng = s.rng("tabletop_cameras")
+    ext = {"dng": ".dng", "exr": ".exr", "png16": ".png", "png8": ".png", "jpg": ".jpg"}[s.photos.format]
+    K = intrinsics(s.cameras.width, s.cameras.height, s.cameras.fov)
+    lo, hi = s.tabletop.elevation_range
+    n_rings = max(1, min(s.tabletop.rings, s.cameras.n_views))
     # rings from low to high, a margin inside the range for the jitter
     pad = min(4.0, 0.15 * (hi - lo))
     elevs = np.linspace(lo + pad, hi - pad, n_rings) if n_rings > 1 else np.array([0.5 * (lo + hi)])
     # more views on the longer low rings (circumference ~ cos(elevation))
     weight = np.cos(np.radians(elevs))
-    counts = np.floor(s.n_views * weight / weight.sum()).astype(int)
-    for k in np.argsort(-weight)[: s.n_views - counts.sum()]:
+    counts = np.floor(s.cameras.n_views * weight / weight.sum()).astype(int)
+    for k in np.argsort(-weight)[: s.cameras.n_views - counts.sum()]:
         counts[k] += 1
     # people stand farther back for low views, closer for views from above
-    ring_dist = s.distance * np.linspace(1.08, 0.92, n_rings) if n_rings > 1 else np.array([s.distance])
+    ring_dist = s.cameras.distance * np.linspace(1.08, 0.92, n_rings) if n_rings > 1 else np.array([s.cameras.distance])
     target = np.asarray(target, dtype=np.float64)
     frames = []
     for r in range(n_rings):
@@ -144,28 +144,28 @@ def tabletop_cameras(settings, target=(0.0, 0.0, 0.0)) -> CameraSet:
         for k in range(m):
             az = phase + 2 * np.pi * (k + rng.uniform(-0.2, 0.2)) / m
             el = np.radians(np.clip(elevs[r] + rng.uniform(-pad, pad), lo, hi))
-            dist = ring_dist[r] * (1.0 + rng.uniform(-1, 1) * s.distance_jitter)
+            dist = ring_dist[r] * (1.0 + rng.uniform(-1, 1) * s.tabletop.distance_jitter)
             d = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
             eye = target + dist * d
-            aim = target + rng.normal(0.0, s.aim_jitter, 3) * np.array([1.0, 1.0, 0.5])
+            aim = target + rng.normal(0.0, s.tabletop.aim_jitter, 3) * np.array([1.0, 1.0, 0.5])
             W = look_at(eye * s.scale, aim * s.scale, up=(0.0, 0.0, 1.0))
-            roll = np.radians(rng.normal(0.0, s.roll_jitter))
+            roll = np.radians(rng.normal(0.0, s.tabletop.roll_jitter))
             Rz = np.array([[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0], [0, 0, 1.0]])
             W[:3, :] = Rz @ W[:3, :]
-            frames.append(Camera(f"images/{len(frames):04d}{ext}", s.width, s.height, K.copy(), W))
-    return CameraSet(tuple(frames), float(s.light_intensity * s.scale**2))
+            frames.append(Camera(f"images/{len(frames):04d}{ext}", s.cameras.width, s.cameras.height, K.copy(), W))
+    return CameraSet(tuple(frames), float(s.photos.light_intensity * s.scale**2))
 
 
 def closeup_cameras(cams: CameraSet, settings, target) -> CameraSet:
-    """``cams`` with a share ``settings.closeups`` of the views (chosen by a seeded draw) moved
+    """``cams`` with a share ``settings.variations.closeups`` of the views (chosen by a seeded draw) moved
     along their optical axis to ``closeup_distance`` of their distance from ``target`` (their
     aim and roll kept): the frame cuts the object there."""
     s = settings
     n = len(cams)
-    k = int(round(s.closeups * n))
+    k = int(round(s.variations.closeups * n))
     if k == 0:
         return cams
-    rng = np.random.default_rng(np.random.SeedSequence([int(s.seed), 0xC105E]))
+    rng = s.rng("closeups")
     chosen = set(rng.choice(n, size=k, replace=False).tolist())
     target = np.asarray(target, dtype=np.float64) * s.scale
     frames = []
@@ -175,7 +175,7 @@ def closeup_cameras(cams: CameraSet, settings, target) -> CameraSet:
             axis = cam.camera_to_world[:3, 2]
             along = float((target - c) @ axis)
             W = cam.world_to_camera.copy()
-            new_c = c + (1.0 - s.closeup_distance) * along * axis
+            new_c = c + (1.0 - s.variations.closeup_distance) * along * axis
             W[:3, 3] = -W[:3, :3] @ new_c
             cam = Camera(cam.image, cam.width, cam.height, cam.K.copy(), W)
         frames.append(cam)

@@ -1,18 +1,18 @@
 """Synthetic captures: the folder contract of DESIGN section 1, and that gt/ describes the photos."""
 
-import dataclasses
 import hashlib
 import json
 
 import numpy as np
 import pytest
 
+from recon import sections
 from recon.io.cameras import load_cameras
 from recon.io.images import read_exr, read_ldr, read_mask, srgb_to_linear
 from recon.io.mesh import read_obj
 from recon.synth.capture import PRESETS, SynthError, SynthSettings, make_capture, view_exposures
 
-SMALL = SynthSettings(object="blob", n_views=4, width=40, height=30, fov=40.0, distance=4.2,
+SMALL = sections.replace(SynthSettings(), object="blob", n_views=4, width=40, height=30, fov=40.0, distance=4.2,
                       spp=4, seed=3, light_intensity=28.0, mesh_level=2, texture_size=64,
                       noise=False, write_masks=True, write_cameras=True, write_gt_linear=True,
                       format="exr")
@@ -78,8 +78,8 @@ def test_photos_match_gt(exr_capture, mi):
         np.testing.assert_allclose([cols.min(), rows.min()], np.floor(xy.min(0)), atol=1.01)
         np.testing.assert_allclose([cols.max(), rows.max()], np.floor(xy.max(0)), atol=1.01)
         if i == 0:
-            again = render_reference(mesh, tex, cam, cams.light_intensity, SMALL.spp,
-                                     seed=SMALL.seed * 100003 + i)
+            again = render_reference(mesh, tex, cam, cams.light_intensity, SMALL.photos.spp,
+                                     seed=SMALL.view_seed(i))
             assert np.abs(again - photo).mean() < 1e-3 * photo[mask].mean()
 
 
@@ -88,7 +88,7 @@ def test_dng_capture_follows_the_sensor(tmp_path):
 
     from recon.synth.sensor import SensorModel
 
-    s = dataclasses.replace(SMALL, format="dng", exposure_variation=1.0, write_masks=False,
+    s = sections.replace(SMALL, format="dng", exposure_variation=1.0, write_masks=False,
                             write_cameras=False, n_views=5)
     make_capture(tmp_path / "cap", s)
     cap = tmp_path / "cap"
@@ -108,7 +108,7 @@ def test_dng_capture_follows_the_sensor(tmp_path):
 
 
 def test_png_capture_is_srgb_of_the_renders(tmp_path):
-    s = dataclasses.replace(SMALL, format="png16", write_masks=False, n_views=2)
+    s = sections.replace(SMALL, format="png16", write_masks=False, n_views=2)
     make_capture(tmp_path / "cap", s)
     for cam in load_cameras(tmp_path / "cap" / "cameras.json"):
         img, bits = read_ldr(tmp_path / "cap" / cam.image)
@@ -121,11 +121,11 @@ def test_capture_is_reproducible(tmp_path, drjit_single_thread):
     """The same settings give the same files byte for byte. On one drjit thread: with several,
     the order in which a pixel's samples are added is the scheduler's, and a float32 EXR (or a
     DNG value at a rounding boundary) can differ in its last bit between two runs."""
-    s = dataclasses.replace(SMALL, format="dng", noise=True, n_views=2, write_masks=False)
+    s = sections.replace(SMALL, format="dng", noise=True, n_views=2, write_masks=False)
     make_capture(tmp_path / "a", s)
     make_capture(tmp_path / "b", s)
     assert _tree(tmp_path / "a") == _tree(tmp_path / "b")
-    make_capture(tmp_path / "c", dataclasses.replace(s, seed=4))
+    make_capture(tmp_path / "c", sections.replace(s, seed=4))
     assert _tree(tmp_path / "a") != _tree(tmp_path / "c")
 
 
@@ -142,19 +142,19 @@ def test_capture_is_reproducible(tmp_path, drjit_single_thread):
 ])
 def test_bad_settings_raise(change, match):
     with pytest.raises(SynthError, match=match):
-        dataclasses.replace(dataclasses.replace(SMALL, format="dng"), **change)
+        sections.replace(sections.replace(SMALL, format="dng"), **change)
 
 
 def test_presets_are_valid():
     assert {"demo", "blob", "torus", "smooth"} <= set(PRESETS)
     demo = PRESETS["demo"]
-    assert demo.format == "dng" and not demo.write_cameras and 24 <= demo.n_views <= 32
+    assert demo.photos.format == "dng" and not demo.outputs.write_cameras and 24 <= demo.cameras.n_views <= 32
 
 
 def test_scene_scale_leaves_the_photos_unchanged(exr_capture, tmp_path):
     """scale s: object, cameras and gt mesh times s, light times s^2 -> the same photos."""
     s = 1e-3
-    out = make_capture(tmp_path / "tiny", dataclasses.replace(SMALL, scale=s))
+    out = make_capture(tmp_path / "tiny", sections.replace(SMALL, scale=s))
     for stem in ("0000", "0003"):
         a = read_exr(exr_capture / "images" / f"{stem}.exr")
         b = read_exr(out / "images" / f"{stem}.exr")
@@ -166,10 +166,10 @@ def test_scene_scale_leaves_the_photos_unchanged(exr_capture, tmp_path):
 
 
 def test_constant_material_overrides(tmp_path):
-    out = make_capture(tmp_path / "diffuse", dataclasses.replace(SMALL, specular=0.0, roughness=1.0, albedo=0.5))
+    out = make_capture(tmp_path / "diffuse", sections.replace(SMALL, specular=0.0, roughness=1.0, albedo=0.5))
     assert read_exr(out / "gt" / "specular.exr").max() == 0.0
     np.testing.assert_allclose(read_exr(out / "gt" / "roughness.exr"), 1.0)
     np.testing.assert_allclose(read_exr(out / "gt" / "diffuse.exr"), 0.5)
     for bad in (dict(specular=1.5), dict(albedo=-0.1), dict(roughness=0.0), dict(scale=0.0)):
         with pytest.raises(SynthError, match=next(iter(bad))):
-            dataclasses.replace(SMALL, **bad)
+            sections.replace(SMALL, **bad)

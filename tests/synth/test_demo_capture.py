@@ -1,11 +1,11 @@
 """The bundled CI capture captures/demo: made by the ``demo`` preset, small, contract-conform."""
 
-import dataclasses
 import hashlib
 import json
 
 import pytest
 
+from recon import sections
 from recon.io.cameras import load_cameras
 from recon.synth.capture import PRESETS, SynthSettings, make_capture
 
@@ -40,9 +40,9 @@ def test_demo_contract_and_size(demo):
     assert meta["command"] == DEMO_COMMAND
     # the bundled files were made by the current demo preset; settings added since then must be
     # at their defaults (which leave the output unchanged)
-    preset = json.loads(json.dumps(dataclasses.asdict(PRESETS["demo"])))
+    preset = json.loads(json.dumps(sections.flatten(PRESETS["demo"])))
     assert {k: preset[k] for k in meta["settings"]} == meta["settings"]
-    defaults = json.loads(json.dumps(dataclasses.asdict(SynthSettings())))
+    defaults = json.loads(json.dumps(sections.flatten(SynthSettings())))
     assert {k: preset[k] for k in preset if k not in meta["settings"]} == \
         {k: defaults[k] for k in preset if k not in meta["settings"]}
 

@@ -1,13 +1,13 @@
 """A phone's imaging in synthetic captures (recon/synth/imaging.py): each effect switchable, the
 photos made exactly as gt/imaging.json says, JPEG EXIF that linearize reads back."""
 
-import dataclasses
 import json
 
 import cv2
 import numpy as np
 import pytest
 
+from recon import sections
 from recon.io.cameras import load_cameras
 from recon.io.images import read_exr
 from recon.io.mesh import read_obj
@@ -17,10 +17,10 @@ from recon.synth import cli
 from recon.synth.capture import PRESETS, SynthError, SynthSettings, make_capture, recorded_settings
 from recon.synth.imaging import falloff_map, light_position, linearized_tone, s_curve, tone_encode
 
-SMALL = SynthSettings(object="blob", n_views=4, width=40, height=30, fov=40.0, distance=4.2, spp=4, seed=3,
+SMALL = sections.replace(SynthSettings(), object="blob", n_views=4, width=40, height=30, fov=40.0, distance=4.2, spp=4, seed=3,
                       light_intensity=28.0, mesh_level=2, texture_size=64, noise=False, write_masks=True,
                       write_cameras=True, write_gt_linear=True, format="jpg")
-PHONE = dataclasses.replace(SMALL, flash_offset=(0.19, -0.05, 0.0), exposure_variation=0.5, exposure_jitter=0.3,
+PHONE = sections.replace(SMALL, flash_offset=(0.19, -0.05, 0.0), exposure_variation=0.5, exposure_jitter=0.3,
                             wb_jitter=0.04, falloff=(-0.3, 0.05), tone_curve="phone", tone_contrast=1.4)
 
 
@@ -38,11 +38,11 @@ def test_tone_curve_and_falloff_functions():
 
 def test_settings_validation_and_command_line():
     with pytest.raises(SynthError, match="tone_curve"):
-        dataclasses.replace(SMALL, format="exr", tone_curve="phone")
+        sections.replace(SMALL, format="exr", tone_curve="phone")
     with pytest.raises(SynthError, match="falloff"):
-        dataclasses.replace(SMALL, falloff=(-0.97, 0.0))
+        sections.replace(SMALL, falloff=(-0.97, 0.0))
     with pytest.raises(SynthError, match="flash_offset"):
-        dataclasses.replace(SMALL, flash_offset=(3.0, 0.0, 0.0))
+        sections.replace(SMALL, flash_offset=(3.0, 0.0, 0.0))
     # the default settings record no phone fields (older captures regenerate bit-identically)
     assert "flash_offset" not in recorded_settings(SynthSettings())
     assert recorded_settings(PRESETS["phone"])["tone_curve"] == "phone"
@@ -50,7 +50,7 @@ def test_settings_validation_and_command_line():
     cli.add_arguments(p)
     args = p.parse_args(["/tmp/x", "--preset", "phone", "--flash-offset", "0", "0", "0", "--ambient", "0"])
     s = cli.settings_from_args(args)
-    assert s.flash_offset == (0.0, 0.0, 0.0) and s.ambient == 0.0 and s.tone_curve == "phone"
+    assert s.phone.flash_offset == (0.0, 0.0, 0.0) and s.phone.ambient == 0.0 and s.phone.tone_curve == "phone"
     assert "--flash-offset 0.0 0.0 0.0" in cli.command_line(args)
 
 
@@ -105,8 +105,8 @@ def test_flash_offset_moves_the_light(phone_capture):
     x = read_exr(cap / "gt" / "linear" / "0001.exr")
     pos = light_position(cam, [0.19, -0.05, 0.0])
     assert abs(np.linalg.norm(pos - cam.center) - np.hypot(0.19, 0.05)) < 1e-9
-    moved = render_reference(mesh, tex, cam, cams.light_intensity, PHONE.spp, seed=3 * 100003 + 1, light_position=pos)
-    centred = render_reference(mesh, tex, cam, cams.light_intensity, PHONE.spp, seed=3 * 100003 + 1)
+    moved = render_reference(mesh, tex, cam, cams.light_intensity, PHONE.photos.spp, seed=PHONE.view_seed(1), light_position=pos)
+    centred = render_reference(mesh, tex, cam, cams.light_intensity, PHONE.photos.spp, seed=PHONE.view_seed(1))
     np.testing.assert_allclose(moved, x, atol=1e-5)
     assert np.abs(centred - x).max() > 1e-3
 
@@ -114,7 +114,7 @@ def test_flash_offset_moves_the_light(phone_capture):
 def test_ambient_adds_the_recorded_radiance(tmp_path):
     """A grey diffuse object under the ambient term only: the lit-from-everywhere part of a flat
     facing region is a_d L_amb with L_amb = ambient I_e / (pi d^2) (gt/imaging.json)."""
-    s = dataclasses.replace(SMALL, format="exr", albedo=0.5, specular=0.0, ambient=0.2, n_views=1, spp=64,
+    s = sections.replace(SMALL, format="exr", albedo=0.5, specular=0.0, ambient=0.2, n_views=1, spp=64,
                             write_masks=False)
     cap = make_capture(tmp_path / "amb", s)
     gt = json.loads((cap / "gt" / "imaging.json").read_text())
@@ -133,11 +133,11 @@ def test_ambient_adds_the_recorded_radiance(tmp_path):
 def test_dng_gainmap_undoes_the_falloff(tmp_path):
     """A phone DNG whose lens falloff is corrected by an OpcodeList3 GainMap: linearize applies
     it and returns the scene (gt/linear) again; without the map the corners stay dark."""
-    base = dataclasses.replace(SMALL, format="dng", width=64, height=48, falloff=(-0.4, 0.0), n_views=1,
+    base = sections.replace(SMALL, format="dng", width=64, height=48, falloff=(-0.4, 0.0), n_views=1,
                                distance=3.0, albedo=0.6)
     out = {}
     for gm in (True, False):
-        cap = make_capture(tmp_path / f"gm{gm}", dataclasses.replace(base, falloff_gainmap=gm))
+        cap = make_capture(tmp_path / f"gm{gm}", sections.replace(base, falloff_gainmap=gm))
         info = linearize_capture(cap, tmp_path / f"lin{gm}")
         assert bool(info["images"]["0000"]["opcodes_applied"]) == gm
         x = read_exr(cap / "gt" / "linear" / "0000.exr")

@@ -1,6 +1,5 @@
 """Tabletop captures: the object on a lit, textured table, hand-held cameras above it, gt of the object alone."""
 
-import dataclasses
 import json
 
 import numpy as np
@@ -8,6 +7,7 @@ import pytest
 from _geometry_scene import silhouette
 from _tabletop_scene import TABLETOP_TEST, tabletop_capture
 
+from recon import sections
 from recon.__main__ import build_parser
 from recon.brdf import radiance_collocated
 from recon.io.cameras import load_cameras
@@ -66,8 +66,8 @@ def test_table_radiance_follows_the_model(cap):
     """Pixels that see the table: I_e f(mu) mu / r^2 with the table's texture (a_d), a_s = 0.04, r = 0.45."""
     cams = load_cameras(cap / "gt" / "cameras.json")
     plane = load_plane(cap / "gt" / "plane.json")
-    s = SynthSettings(**TABLETOP_TEST)
-    tex = tt.table_texture(s.table_texture_size, s.table_half_size, s.seed)
+    s = sections.replace(SynthSettings(), **TABLETOP_TEST)
+    tex = tt.table_texture(s.tabletop.table_texture_size, s.tabletop.table_half_size, s.seed)
     cam = cams.frames[0]
     gt = read_mask(cap / "gt" / "masks" / f"{cam.stem}.png")
     photo = read_exr(cap / cam.image)
@@ -80,8 +80,8 @@ def test_table_radiance_follows_the_model(cap):
     t = plane.ray_hit(cam.center, d)
     P = cam.center + t[:, None] * d
     size = tex.shape[0]
-    j = np.clip(((P[:, 0] + s.table_half_size) / (2 * s.table_half_size) * size).astype(int), 0, size - 1)
-    i = np.clip(((s.table_half_size - P[:, 1]) / (2 * s.table_half_size) * size).astype(int), 0, size - 1)
+    j = np.clip(((P[:, 0] + s.tabletop.table_half_size) / (2 * s.tabletop.table_half_size) * size).astype(int), 0, size - 1)
+    i = np.clip(((s.tabletop.table_half_size - P[:, 1]) / (2 * s.tabletop.table_half_size) * size).astype(int), 0, size - 1)
     dist = np.linalg.norm(P - cam.center, axis=1)
     mu = plane.height(cam.center) / dist
     expect = radiance_collocated(mu, dist, tex[i, j], np.full((len(P), 1), tt.TABLE_SPECULAR), tt.TABLE_ROUGHNESS,
@@ -106,7 +106,7 @@ def test_cameras_are_handheld_rings_above_the_table(cap):
     assert miss.max() < 0.5 and np.median(miss) > 0.01
     roll = np.degrees(np.arcsin(np.stack([c.camera_to_world[:3, 0] for c in cams])[:, 2]))
     assert 0.5 < roll.std() < 10
-    again = tt.tabletop_cameras(SynthSettings(**TABLETOP_TEST))
+    again = tt.tabletop_cameras(sections.replace(SynthSettings(), **TABLETOP_TEST))
     np.testing.assert_allclose(again.frames[5].world_to_camera, cams.frames[5].world_to_camera, atol=1e-12)
 
 
@@ -131,7 +131,7 @@ def test_marker_mat_is_a_detectable_charuco_board(tmp_path):
 
 
 def test_marker_mat_capture_records_it(tmp_path):
-    s = SynthSettings(**{**TABLETOP_TEST, "n_views": 2, "width": 48, "height": 36, "spp": 2, "mesh_level": 2,
+    s = sections.replace(SynthSettings(), **{**TABLETOP_TEST, "n_views": 2, "width": 48, "height": 36, "spp": 2, "mesh_level": 2,
                          "texture_size": 64, "table_texture_size": 256, "marker_square": 0.5, "scale": 0.1,
                          "background": 0.0})
     out = make_capture(tmp_path / "mat", s)
@@ -145,7 +145,7 @@ def test_marker_mat_capture_records_it(tmp_path):
 def test_void_captures_record_no_tabletop_settings():
     void = recorded_settings(SynthSettings())
     assert not set(TABLETOP_FIELDS) & set(void)
-    table = recorded_settings(SynthSettings(scene="tabletop"))
+    table = recorded_settings(sections.replace(SynthSettings(), scene="tabletop"))
     assert set(TABLETOP_FIELDS) <= set(table)
     assert PRESETS["tabletop-mug"].object == "mug" and PRESETS["tabletop-blob"].scene == "tabletop"
 
@@ -155,7 +155,7 @@ def test_cli_tabletop_options_round_trip():
                                       "--elevations", "20", "50", "--rings", "2", "--background", "0",
                                       "--marker-square", "0.4", "--views", "12"])
     s = settings_from_args(args)
-    assert (s.scene, s.object, s.elevation_range, s.rings, s.background, s.marker_square) == \
+    assert (s.scene, s.object, s.tabletop.elevation_range, s.tabletop.rings, s.tabletop.background, s.tabletop.marker_square) == \
         ("tabletop", "mug", (20.0, 50.0), 2, 0.0, 0.4)
     again = settings_from_args(build_parser().parse_args(command_line(args).split()[3:]))
     assert again == s
@@ -174,7 +174,7 @@ def test_cli_tabletop_options_round_trip():
 ])
 def test_bad_tabletop_settings_raise(change, match):
     with pytest.raises(SynthError, match=match):
-        dataclasses.replace(SynthSettings(**TABLETOP_TEST), **change)
+        sections.replace(sections.replace(SynthSettings(), **TABLETOP_TEST), **change)
 
 
 def test_tabletop_void_is_the_same_capture_without_the_table(cap, tmp_path_factory):

@@ -6,6 +6,7 @@ import json
 import numpy as np
 import pytest
 
+from recon import sections
 from recon.__main__ import build_parser
 from recon.io.cameras import load_cameras
 from recon.io.images import read_exr, read_mask
@@ -63,13 +64,13 @@ def test_palettes_colour_the_object():
 
 def test_defaults_record_no_variation():
     s = SynthSettings()
-    assert not s.variations and not set(VARIATION_FIELDS) & set(recorded_settings(s))
-    v = SynthSettings(scene="tabletop", palette="glaze", texture_pattern=False, wall=0.5, lamps=0.2, closeups=0.2)
-    assert v.variations and set(VARIATION_FIELDS) <= set(recorded_settings(v))
+    assert not s.has_variations and not set(VARIATION_FIELDS) & set(recorded_settings(s))
+    v = sections.replace(SynthSettings(), scene="tabletop", palette="glaze", texture_pattern=False, wall=0.5, lamps=0.2, closeups=0.2)
+    assert v.has_variations and set(VARIATION_FIELDS) <= set(recorded_settings(v))
     with pytest.raises(SynthError, match="palette"):
-        SynthSettings(palette="neon")
+        sections.replace(SynthSettings(), palette="neon")
     with pytest.raises(SynthError, match="tabletop"):
-        SynthSettings(wall=0.5)  # a void scene has no room
+        sections.replace(SynthSettings(), wall=0.5)  # a void scene has no room
 
 
 def test_command_line_round_trip_of_variations():
@@ -77,7 +78,7 @@ def test_command_line_round_trip_of_variations():
             "--wall", "0.4", "--lamps", "0.3", "--closeups", "0.25", "--stand-height", "1.5"]
     args = build_parser().parse_args(argv)
     s = settings_from_args(args)
-    assert (s.scene, s.palette, s.texture_pattern, s.wall, s.lamps, s.closeups, s.stand_height) == \
+    assert (s.scene, s.variations.palette, s.variations.texture_pattern, s.variations.wall, s.variations.lamps, s.variations.closeups, s.variations.stand_height) == \
         ("stand", "dark", False, 0.4, 0.3, 0.25, 1.5)
     again = settings_from_args(build_parser().parse_args(command_line(args).split()[3:]))
     assert again == s
@@ -89,8 +90,8 @@ def test_stand_scene_with_a_wall_lamps_and_close_ups(tmp_path):
     kw = dict(scene="stand", object="bell", n_views=4, width=64, height=48, fov=50.0, distance=5.0, spp=4,
               mesh_level=3, texture_size=64, format="exr", noise=False, write_gt_linear=True,
               elevation_range=(10.0, 40.0), rings=1, wall=0.5, closeups=0.25, palette="glaze")
-    cap = make_capture(tmp_path / "lit", SynthSettings(**kw, lamps=0.5))
-    dark = make_capture(tmp_path / "flash", SynthSettings(**kw))
+    cap = make_capture(tmp_path / "lit", sections.replace(SynthSettings(), **kw, lamps=0.5))
+    dark = make_capture(tmp_path / "flash", sections.replace(SynthSettings(), **kw))
     meta = json.loads((cap / "gt" / "synth.json").read_text())
     assert meta["settings"]["scene"] == "stand" and meta["settings"]["lamps"] == 0.5
     assert not (cap / "gt" / "plane.json").exists()

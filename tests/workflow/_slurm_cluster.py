@@ -96,9 +96,10 @@ def make_profile(dest: Path, retries: int | None = None, set_resources: dict | N
 def make_tiny_capture(folder: Path, seed: int, views: int = 6, width: int = 64,
                       settings: dict | None = None) -> Path:
     """A small synthetic capture (known cameras, EXR photos) with :data:`TINY_SETTINGS`."""
+    from recon import sections
     from recon.synth.capture import SynthSettings, make_capture
 
-    make_capture(folder, SynthSettings(n_views=views, width=width, height=width * 3 // 4,
+    make_capture(folder, sections.replace(SynthSettings(), n_views=views, width=width, height=width * 3 // 4,
                                        format="exr", seed=seed, mesh_level=3, texture_size=64,
                                        write_cameras=True, write_masks=False))
     yaml_path = folder / "capture.yaml"  # the generator writes one only where it states something

@@ -30,7 +30,7 @@ from recon.io.images import write_png
 SECTION_EDITS = {
     "linearize": "preview_max_size: 32",
     "masks": "dilate_px: 1",
-    "poses": "max_image_size: 800",
+    "poses": "features: {max_image_size: 800}",
     "init_mesh": "resolution: 64",
     "uv": "padding: 3",
     "optimize": "holdout_every: 5",

@@ -1,0 +1,145 @@
+"""Settings in sections (recon.sections) and their flat keys from before (recon.config)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import warnings
+
+import pytest
+
+from recon import config as rc
+from recon import sections
+from recon.poses import PoseSettings
+
+
+@dataclasses.dataclass(frozen=True)
+class _Inner:
+    size: int = 4
+    levels: tuple = (1, 2)
+
+    def __post_init__(self):
+        if self.size > 100:
+            raise ValueError(f"size must be <= 100, got {self.size}")
+
+
+@dataclasses.dataclass(frozen=True)
+class _Other:
+    scale: float = 1.0
+
+
+@sections.sectioned
+@dataclasses.dataclass(frozen=True)
+class _Settings:
+    MOVED = {"old_scale": "other.scale"}
+
+    inner: _Inner = dataclasses.field(default_factory=_Inner)
+    other: _Other = dataclasses.field(default_factory=_Other)
+    seed: int = 0
+
+
+def test_leaf_paths_flatten_and_replace():
+    assert sections.leaf_paths(_Settings) == {"size": "inner.size", "levels": "inner.levels",
+                                              "scale": "other.scale", "old_scale": "other.scale"}
+    s = sections.replace(_Settings(), size=8, scale=2.0, seed=3)
+    assert s == _Settings(inner=_Inner(8), other=_Other(2.0), seed=3)
+    assert sections.flatten(s) == {"size": 8, "levels": (1, 2), "scale": 2.0, "seed": 3}
+    assert _Settings(inner={"size": 5}).inner == _Inner(5)  # a section as a mapping
+    with pytest.raises(TypeError, match=r"has no setting\(s\) \['sise'\]"):
+        sections.replace(_Settings(), sise=8)
+
+
+def test_flat_python_keywords_still_work_with_a_deprecation_warning():
+    with pytest.warns(DeprecationWarning, match="size -> inner.size"):
+        s = _Settings(size=8)
+    assert s.inner.size == 8
+    with pytest.warns(DeprecationWarning, match="size -> inner.size"):
+        assert dataclasses.replace(s, size=9).inner == _Inner(9, (1, 2))
+    with pytest.warns(DeprecationWarning, match=r"_Settings.size is now _Settings.inner.size"):
+        assert s.size == 8
+    with pytest.raises(TypeError, match=r"unknown setting\(s\) \['sise'\]"):
+        _Settings(sise=8)
+    with pytest.raises(AttributeError):
+        _Settings().sise  # noqa: B018
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the sections themselves: no warning
+        assert _Settings(inner=_Inner(8)) == sections.replace(_Settings(), size=8)
+
+
+def test_build_settings_takes_sections_and_moves_flat_keys(caplog):
+    s = rc.build_settings(_Settings, {"inner": {"size": 8, "levels": [3]}, "seed": 2})
+    assert s == _Settings(inner=_Inner(8, (3,)), seed=2)
+    with caplog.at_level(logging.WARNING, logger="recon.config"):
+        s = rc.build_settings(_Settings, {"size": 7, "old_scale": 3, "_sources": ["p.yaml", "cap/capture.yaml"],
+                                          "_key_sources": {"size": "cap/capture.yaml", "old_scale": "cap/capture.yaml"}})
+    assert s == _Settings(inner=_Inner(7), other=_Other(3.0))
+    lines = [r.getMessage() for r in caplog.records]
+    assert "cap/capture.yaml: 'size' is deprecated here: its place is now 'inner.size' (_Settings sections); " \
+           "move it there" in lines
+    assert any("'old_scale'" in x and "'other.scale'" in x for x in lines) and len(lines) == 2
+
+
+def test_build_settings_refuses_what_names_no_place():
+    with pytest.raises(rc.ConfigError, match=r"unknown _Settings key\(s\) \['sise'\]; valid keys: inner, other, "
+                                             r"seed \(in sections: inner, other"):
+        rc.build_settings(_Settings, {"sise": 8})
+    with pytest.raises(rc.ConfigError, match=r"unknown _Settings.inner key\(s\) \['sise'\]"):
+        rc.build_settings(_Settings, {"inner": {"sise": 8}})
+    with pytest.raises(rc.ConfigError, match="_Settings section 'inner' must be a mapping"):
+        rc.build_settings(_Settings, {"inner": 8})
+    with pytest.raises(rc.ConfigError, match=r"_Settings.inner setting 'size' must be a whole number, got 'big'"):
+        rc.build_settings(_Settings, {"size": "big"})
+    with pytest.raises(rc.ConfigError, match=r"invalid _Settings.inner \(size must be <= 100"):
+        rc.build_settings(_Settings, {"inner": {"size": 101}})
+    with pytest.raises(rc.ConfigError, match=r"x.yaml: _Settings gives 'size' \(8\) and 'inner.size' \(9\); "
+                                             r"keep 'inner.size' only"):
+        rc.build_settings(_Settings, {"size": 8, "inner": {"size": 9}}, "x.yaml")
+
+
+def _capture(tmp_path, preset_text, capture_text):
+    presets = tmp_path / "presets"
+    presets.mkdir(parents=True)
+    (presets / "draft.yaml").write_text(preset_text)
+    cap = tmp_path / "cap"
+    cap.mkdir()
+    (cap / "capture.yaml").write_text(capture_text)
+    return rc.stage_settings("poses", "draft", cap, presets), cap
+
+
+def test_capture_sections_merge_key_by_key_and_name_their_file(tmp_path):
+    values, cap = _capture(tmp_path, "poses: {features: {max_image_size: 800, sift_upsample: 2}}\n",
+                           "poses: {features: {sift_upsample: 3}, matching: {matcher: ordered}}\n")
+    s = rc.build_settings(PoseSettings, values)
+    assert (s.features.max_image_size, s.features.sift_upsample, s.matching.matcher) == (800, 3, "ordered")
+    values, cap = _capture(tmp_path / "b", "poses: {}\n", "poses: {matching: {min_num_inliers: -1}}\n")
+    with pytest.raises(rc.ConfigError, match=r"capture.yaml: PoseSettings.matching setting 'min_num_inliers' "
+                                             r"must not be negative"):
+        rc.build_settings(PoseSettings, values)
+
+
+def test_flat_key_of_an_old_capture_yaml_still_works(tmp_path, caplog):
+    values, cap = _capture(tmp_path, "poses: {features: {sift_upsample: 1, max_image_size: 800}}\n",
+                           "poses: {sift_upsample: 2, seed: 4}\n")
+    with caplog.at_level(logging.WARNING, logger="recon.config"):
+        s = rc.build_settings(PoseSettings, values)
+    assert (s.features.sift_upsample, s.features.max_image_size, s.seed) == (2, 800, 4)  # the capture's wins
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{cap / 'capture.yaml'}: 'sift_upsample' is deprecated here: its place is now 'features.sift_upsample' "
+        "(PoseSettings sections); move it there"]
+    values, cap = _capture(tmp_path / "b", "poses: {}\n", "poses: {min_num_inliers: -1}\n")
+    with pytest.raises(rc.ConfigError, match=r"capture.yaml: PoseSettings.matching setting 'min_num_inliers' "
+                                             r"must not be negative"):
+        rc.build_settings(PoseSettings, values)
+
+
+def test_no_settings_class_over_40_fields():
+    from recon.synth.settings import SynthSettings
+
+    def classes(cls):
+        yield cls
+        for sub in sections.section_types(cls).values():
+            yield from classes(sub)
+
+    for top in (PoseSettings, SynthSettings):
+        for cls in classes(top):
+            assert len(dataclasses.fields(cls)) <= 40, (cls.__name__, len(dataclasses.fields(cls)))
