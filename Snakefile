@@ -1,5 +1,6 @@
 # recon: flash photos of an object -> relightable 3D asset.
-# Stages (DESIGN section 2): linearize -> masks -> poses -> init_mesh -> uv -> optimize -> export -> report
+# Stages (DESIGN section 2; names, order and outputs in recon/stages.py, which a test holds these
+# rules to): check -> linearize -> masks -> poses -> init_mesh -> uv -> optimize -> export -> report
 #   snakemake --cores 2 all [--config captures=DIR results=DIR preset=draft|balanced|accurate]
 from snakemake.utils import min_version, validate
 
