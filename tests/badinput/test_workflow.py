@@ -15,10 +15,12 @@ import numpy as np
 import pytest
 from badinput_cases import CASES, sphere_capture, tree_hashes
 
+from recon.stages import STAGES
+
 BY_ID = {c.id: c for c in CASES}
 # a representative few (one per file the check reads; test_corpus.py has every case at the library level)
 BROKEN = ["light_intensity_string", "camera_of_missing_photo", "mask_all_zero", "mesh_10x_too_large"]
-STAGE_FOLDERS = ("check", "linear", "masks", "poses", "init_mesh", "uv", "optimize", "export", "report")
+STAGE_FOLDERS = tuple(s.folder for s in STAGES)  # every stage's results folder (recon.stages)
 
 
 @pytest.fixture(scope="module")
