@@ -45,6 +45,7 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from recon import sections  # noqa: E402
 from recon.config import load_preset  # noqa: E402
 from recon.io.cameras import Camera, CameraSet, load_cameras, save_cameras  # noqa: E402
 from recon.io.mesh import Mesh, read_mesh  # noqa: E402
@@ -172,7 +173,7 @@ def sfm_inputs(cap: Path, work: Path, lin: Path, poses_settings: dict | None = N
     poses = work / "poses"
     t0 = time.perf_counter()
     if not (poses / "cameras.json").is_file():
-        run_poses(lin, poses, PoseSettings(**(poses_settings or {})), masks_dir=cap / "masks",
+        run_poses(lin, poses, sections.replace(PoseSettings(), **(poses_settings or {})), masks_dir=cap / "masks",
                   linear_json=lin / "linear.json")
     secs = time.perf_counter() - t0
     cams = load_cameras(poses / "cameras.json")

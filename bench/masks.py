@@ -37,6 +37,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from recon import sections
 from recon.io.cameras import load_cameras  # noqa: E402
 from recon.io.images import read_mask  # noqa: E402
 from recon.synth.capture import SynthSettings, make_capture  # noqa: E402
@@ -93,7 +94,7 @@ def make(name: str, out: Path) -> Path:
     cap = out / "captures" / name
     if not (cap / "gt" / "cameras.json").is_file():
         t0 = time.perf_counter()
-        make_capture(cap, SynthSettings(**SCENES[name]), command=f"bench/masks.py ({name})")
+        make_capture(cap, sections.replace(SynthSettings(), **SCENES[name]), command=f"bench/masks.py ({name})")
         log.info("%s: made in %.0f s", name, time.perf_counter() - t0)
     return cap
 

@@ -36,6 +36,7 @@ import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from recon import sections
 from recon.io.cameras import load_cameras  # noqa: E402
 from recon.io.images import read_exr  # noqa: E402
 from recon.io.mesh import read_obj  # noqa: E402
@@ -78,7 +79,7 @@ def prepare(root: Path, case: str, args) -> dict:
     kw.update(EFFECTS[case])
     t0 = time.perf_counter()
     if not (cap / "cameras.json").is_file():
-        make_capture(cap, SynthSettings(**kw))
+        make_capture(cap, sections.replace(SynthSettings(), **kw))
     if not (lin / "linear.json").is_file():
         linearize_capture(cap, lin)
     t_synth = time.perf_counter() - t0

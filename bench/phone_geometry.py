@@ -35,6 +35,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from recon import sections  # noqa: E402
 from recon.synth.capture import SynthSettings, make_capture  # noqa: E402
 from tabletop_e2e import snakemake  # noqa: E402  (the workflow run of the sibling bench)
 
@@ -58,7 +59,7 @@ def make(root: Path, name: str, args) -> Path:
                   scene=args.scene)
         if name == "phone":
             kw.update(PHONE)
-        make_capture(cap, SynthSettings(**kw))
+        make_capture(cap, sections.replace(SynthSettings(), **kw))
     return cap
 
 

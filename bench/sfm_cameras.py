@@ -49,6 +49,7 @@ from camera_refine import object_frame  # noqa: E402  (the sibling benches' diag
 from phone_geometry import run_folder  # noqa: E402
 from tabletop_e2e import snakemake  # noqa: E402
 
+from recon import sections  # noqa: E402
 from recon.io.cameras import load_cameras  # noqa: E402
 from recon.io.mesh import Mesh, read_mesh  # noqa: E402
 from recon.metrics import Similarity, chamfer, seen_chamfer, umeyama  # noqa: E402
@@ -59,13 +60,11 @@ RUNS = {"given": {}, "sfm": {}, "sfm_refine_off": {"refine_cameras": "off"}}
 
 
 def make(root: Path, args) -> Path:
-    import dataclasses
-
     from recon.synth.capture import make_capture
 
     cap = root / "capture"
     if not (cap / "cameras.json").is_file():
-        s = dataclasses.replace(PRESETS["phone"], scene=args.scene, fov=args.fov, distance=args.distance,
+        s = sections.replace(PRESETS["phone"], scene=args.scene, fov=args.fov, distance=args.distance,
                                 n_views=args.views, width=args.res, height=int(round(args.res * 3 / 4 / 2)) * 2,
                                 spp=args.spp, seed=args.seed, write_cameras=True, write_masks=False,
                                 write_gt_linear=False)

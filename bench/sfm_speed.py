@@ -39,6 +39,7 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from recon import sections
 from recon import metrics  # noqa: E402
 from recon.io.cameras import load_cameras  # noqa: E402
 from recon.io.mesh import read_obj  # noqa: E402
@@ -99,7 +100,7 @@ def run_variant(name: str, capture: Path, linear: Path, masks: Path, work: Path,
 
     base = build_settings(PoseSettings, stage_settings("poses", "balanced", capture))
     variant = {k: v for k, v in VARIANTS[name].items() if k != NO_EXIF_PRIOR}
-    settings = dataclasses.replace(base, **variant)
+    settings = sections.replace(base, **variant)
     out = work / f"poses_{name}"
     load = os.getloadavg()
     t0, c0 = time.perf_counter(), time.process_time()

@@ -24,7 +24,6 @@ ratio to today's masks; writes ``<out>/tabletop.json``.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import sys
@@ -35,6 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from recon import sections
 from recon.io.cameras import load_cameras  # noqa: E402
 from recon.io.images import read_mask  # noqa: E402
 from recon.synth.capture import PRESETS, make_capture  # noqa: E402
@@ -60,7 +60,7 @@ def summary(ious: dict[str, float], seconds: float) -> dict:
 
 
 def settings_for(obj: str, scene: str, args):
-    base = PRESETS[f"tabletop-{obj}"] if scene == "tabletop" else dataclasses.replace(
+    base = PRESETS[f"tabletop-{obj}"] if scene == "tabletop" else sections.replace(
         PRESETS[f"tabletop-{obj}"], scene="void", view_z_range=(-0.35, 0.92), distance=4.2, fov=40.0)
     changes = {"write_cameras": True, "write_masks": False, "write_gt_linear": False}
     if scene == "void":
@@ -71,7 +71,7 @@ def settings_for(obj: str, scene: str, args):
             changes[key] = v
     if args.width is not None:
         changes["height"] = int(round(args.width * 3 / 4 / 2)) * 2
-    return dataclasses.replace(base, **changes)
+    return sections.replace(base, **changes)
 
 
 def plane_error(found: Path, true: Path, similarity=None) -> dict | None:
@@ -109,7 +109,7 @@ def run_object(obj: str, out: Path, args) -> dict:
         linear = work / "linear"
         if not (linear / "linear.json").is_file():
             linearize_capture(cap, linear)
-        r = {"settings": {k: v for k, v in dataclasses.asdict(s).items()
+        r = {"settings": {k: v for k, v in sections.flatten(s).items()
                           if k in ("object", "n_views", "width", "height", "fov", "distance", "format", "spp")}}
         t0 = time.perf_counter()
         run_masks(linear, work / "masks_today")

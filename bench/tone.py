@@ -60,6 +60,7 @@ def capture_settings(curve: str, args) -> dict:
 def prepare(root: Path, curve: str, args) -> Path:
     """The capture, its linearized views, the true mesh's G-buffers and the true maps, saved to
     ``<root>/<curve>.pt`` (plain tensors and arrays: the fits need neither open3d nor mitsuba)."""
+    from recon import sections
     from recon.io.cameras import load_cameras
     from recon.io.images import read_exr
     from recon.io.mesh import read_obj
@@ -75,7 +76,7 @@ def prepare(root: Path, curve: str, args) -> Path:
         return path
     cap, lin = root / "captures" / curve, root / "linear" / curve
     if not (cap / "cameras.json").is_file():
-        make_capture(cap, SynthSettings(**capture_settings(curve, args)))
+        make_capture(cap, sections.replace(SynthSettings(), **capture_settings(curve, args)))
     if not (lin / "linear.json").is_file():
         linearize_capture(cap, lin)
     info = json.loads((lin / "linear.json").read_text())
