@@ -24,13 +24,13 @@ named (change one, change all):
 
 - here, numpy float64: the reference (``tests/test_brdf.py``: known values, normalization of D,
   Smith G1's projected area, reciprocity, energy bounds, extremes);
-- ``recon/render/collocated.py`` ``CollocatedRenderer._shade_collocated``, drjit, the
-  differentiable renderer with the light at the lens
+- ``recon/render/shading.py`` ``shade_collocated``, drjit, the differentiable renderer
+  (:mod:`recon.render.collocated`) with the light at the lens
   (``tests/render/test_collocated.py::test_forward_known_values_fronto_parallel_quad`` against
   :func:`radiance_collocated`; ``test_forward_matches_mitsuba_reference`` through the plugin
   below);
-- ``recon/render/collocated.py`` ``CollocatedRenderer._shade_offset``, drjit, the same renderer
-  with the flash beside the lens (the general model)
+- ``recon/render/shading.py`` ``shade_offset``, drjit, the same renderer with the flash beside
+  the lens (the general model)
   (``tests/render/test_collocated.py::test_forward_known_values_flash_offset_and_ambient``
   against :func:`eval_brdf`; ``test_flash_offset_matches_mitsuba_reference`` through the plugin
   below; ``test_flash_offset_and_ambient_match_the_formation`` against the G-buffer's
@@ -51,7 +51,8 @@ named (change one, change all):
   against :func:`radiance_collocated`).
 
 ``tests/test_brdf.py::test_every_copy_is_named_with_its_tests`` holds this list to the code: each
-file and function named exists, and so does each test.
+file and function named exists (the function found by its dotted name in the module the
+file is), and so does each test.
 """
 
 from __future__ import annotations

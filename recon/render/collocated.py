@@ -11,21 +11,19 @@ positions (so gradients flow through them), UVs interpolated barycentrically and
 texture lookups (DESIGN UV convention, clamp to the edge texels).
 
 Derivatives (the paper's eq. 4-5, Reynolds transport):
-- interior: automatic differentiation of the integrand. The hit point is recomputed here from
-  the differentiable triangle (Moller-Trumbore on the fixed ray), so it slides along the ray as
+- interior: automatic differentiation of the integrand. The hit point is recomputed from the
+  differentiable triangle (Moller-Trumbore on the fixed ray), so it slides along the ray as
   the triangle moves, and so do the barycentrics, the normal and the UV.
-- boundary: edge sampling (Li et al. 2018). Silhouette edges are found per view
-  (:mod:`recon.render.edges`: edges between a front- and a back-facing face, plus open and
-  non-manifold edges, clipped to the near plane and the image). Per view, one stratified
-  variable runs along the concatenated silhouette curve, so each sample is uniform over the
-  curve length (unbiased) and neighbouring samples are neighbours on the curve (coherent rays,
-  low variance). At each sample the jump dI = I(x - eps n) - I(x + eps n) across the edge is
-  evaluated with two rays; the normal velocity of the projected edge at the (fixed) sample
-  point is n . dx/dtheta = -(dl/dtheta . x~) / |(l0, l1)|, with l = K^-T (X0 x X1) the image
-  line through the edge's camera-space end points (valid also for edges clipped by the near
-  plane). A term whose primal is zero and whose derivative is ``dI * (n . dx/dtheta) * L / M``
-  is scattered into the pixel the sample lands in (eq. 5). Samples whose edge point is hidden
-  behind other geometry (both side rays stop well before the edge) carry nothing.
+- boundary: edge sampling (Li et al. 2018) of the silhouettes, per view one stratified variable
+  along the silhouette curve, the jump across the edge times the edge's normal velocity.
+
+This module owns the control flow of a call (inputs, the Mitsuba scene, vertex normals, the
+interior term, the torch entry point); the phases live in their own modules:
+:mod:`recon.render.rays` (camera table, primary rays, tracing, the flash's position),
+:mod:`recon.render.shading` (the hit and the BRDF's drjit copies),
+:mod:`recon.render.boundary` (the edge-sampled boundary term), :mod:`recon.render.edges`
+(silhouette edges), :mod:`recon.render.torch_bridge` (the autograd function) and
+:mod:`recon.render.settings` (:class:`RenderSettings`, :class:`RenderError`).
 
 Everything runs as drjit wavefronts (no Python loops over pixels or edges). Values that change
 between calls (seed, light intensity, cameras, texture sizes) enter the kernels as opaque
@@ -36,7 +34,6 @@ values, so compiled kernels are reused across iterations; the image size and spp
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -44,114 +41,18 @@ import numpy as np
 from recon.brdf import R_MIN
 from recon.io.cameras import Camera
 from recon.mi import load_variant
-from recon.render.edges import EdgeTopology, edge_topology, silhouette_segments
+from recon.render.arrays import aligned
+from recon.render.boundary import boundary_term
+from recon.render.edges import EdgeTopology, edge_topology
+from recon.render.rays import (camera_table, flash_positions, given_view_table, primary_rays, trace,
+                               view_table)
+from recon.render.settings import BOUNDARY_MODES, RenderError, RenderSettings
+from recon.render.shading import Surface, safe_normalize, shade
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RenderSettings", "CollocatedRenderer", "RenderError", "R_MIN"]
-
-BOUNDARY_MODES = ("edge", "none", "projective")
-
-_CAM_STRIDE = 24  # floats per view in the camera table: Kinv(9) R_w2c(9) t_w2c(3) center(3)
-
-
-class RenderError(ValueError):
-    """Inputs the renderer cannot use; the message says what was received and what is expected."""
-
-
-@dataclass(frozen=True)
-class RenderSettings:
-    """How to render and differentiate.
-
-    Attributes
-    ----------
-    spp : int
-        Samples per pixel (uniform over the pixel footprint).
-    stratified : bool
-        Where ``spp`` is a square k^2, place the samples on a jittered k x k grid over the
-        pixel (each sample stays uniform over the pixel, so the estimate stays unbiased; the
-        variance drops). Otherwise independent uniform samples.
-    boundary : str
-        ``"edge"``: interior + edge-sampled boundary term (unbiased); ``"none"``: interior term
-        only (biased at silhouettes); ``"projective"``: Mitsuba's ``direct_projective``
-        integrator on an equivalent Mitsuba scene (slow, for comparison).
-    edge_samples_per_pixel : float
-        Boundary samples per view = this x image width x height (used when ``edge_samples``
-        is None).
-    edge_samples : int or None
-        Boundary samples per view, overriding ``edge_samples_per_pixel``.
-    edge_eps_px : float
-        Offset (pixels) of the two rays that evaluate the jump across a silhouette.
-    r_min : float
-        Roughness is clamped to [r_min, 1].
-    variant : str or None
-        Mitsuba variant (default: :func:`recon.mi.default_variant`, ``llvm_ad_rgb``).
-    profile : bool
-        Synchronize after each phase of a render and add its wall time (seconds) to
-        ``CollocatedRenderer.timings`` (slows rendering a little; for benchmarks).
-    """
-
-    spp: int = 4
-    boundary: str = "edge"
-    stratified: bool = True
-    edge_samples_per_pixel: float = 0.25
-    edge_samples: int | None = None
-    edge_eps_px: float = 1e-3
-    r_min: float = R_MIN
-    variant: str | None = None
-    profile: bool = False
-
-    def __post_init__(self):
-        if int(self.spp) < 1:
-            raise RenderError(f"RenderSettings.spp must be >= 1, got {self.spp}")
-        if self.boundary not in BOUNDARY_MODES:
-            raise RenderError(
-                f"RenderSettings.boundary must be one of {BOUNDARY_MODES}, got {self.boundary!r}")
-        if self.edge_samples is not None and int(self.edge_samples) < 0:
-            raise RenderError(f"RenderSettings.edge_samples must be >= 0, got {self.edge_samples}")
-        if not self.edge_samples_per_pixel >= 0:
-            raise RenderError("RenderSettings.edge_samples_per_pixel must be >= 0, got "
-                              f"{self.edge_samples_per_pixel}")
-        if not 0 < self.edge_eps_px < 0.5:
-            raise RenderError(f"RenderSettings.edge_eps_px must be in (0, 0.5), got {self.edge_eps_px}")
-        if not 0 < self.r_min <= 1:
-            raise RenderError(f"RenderSettings.r_min must be in (0, 1], got {self.r_min}")
-
-    def edge_count(self, width: int, height: int) -> int:
-        """Number of boundary samples for one view of ``width`` x ``height`` pixels."""
-        if self.edge_samples is not None:
-            return int(self.edge_samples)
-        return int(round(self.edge_samples_per_pixel * width * height))
-
-
-def camera_table(cameras: Sequence[Camera]) -> np.ndarray:
-    """(B, 24) float64 per-view Kinv (row-major), R_w2c, t_w2c, camera center: the values the
-    renderer's rays and projections read (see ``camera_table`` of :meth:`CollocatedRenderer.render_batch`)."""
-    rows = []
-    for cam in cameras:
-        if not isinstance(cam, Camera):
-            raise RenderError(f"cameras: expected recon.io.cameras.Camera objects, got {type(cam)}")
-        R = cam.world_to_camera[:3, :3]
-        t = cam.world_to_camera[:3, 3]
-        rows.append(np.concatenate([np.linalg.inv(cam.K).ravel(), R.ravel(), t, cam.center]))
-    return np.stack(rows)
-
-
-def _aligned(a, dtype) -> np.ndarray:
-    """A flat copy of ``a`` whose buffer starts on a 64-byte boundary.
-
-    drjit maps numpy memory into its arrays without copying and compiles separate kernels
-    for aligned and unaligned inputs; numpy's buffers are aligned to 16 bytes only, so the
-    same call could compile a new kernel variant whenever an allocation landed elsewhere.
-    Every numpy array the renderer hands to drjit goes through here (torch's CPU buffers are
-    64-byte aligned already).
-    """
-    a = np.ascontiguousarray(a, dtype=dtype).reshape(-1)
-    buf = np.empty(a.size + 64 // a.itemsize, dtype=dtype)
-    start = (-buf.ctypes.data % 64) // a.itemsize
-    out = buf[start:start + a.size]
-    out[...] = a
-    return out
+__all__ = ["RenderSettings", "CollocatedRenderer", "RenderError", "R_MIN", "camera_table",
+           "BOUNDARY_MODES"]
 
 
 def _as_int_array(a, name: str, cols: int) -> np.ndarray:
@@ -178,7 +79,8 @@ class CollocatedRenderer:
     settings : RenderSettings
     """
 
-    def __init__(self, t_pos_idx, v_tex, t_tex_idx, settings: RenderSettings = RenderSettings()):
+    # RenderSettings is a frozen dataclass: one shared default is safe
+    def __init__(self, t_pos_idx, v_tex, t_tex_idx, settings: RenderSettings = RenderSettings()):  # noqa: B008
         self.settings = settings
         self.mi = load_variant(settings.variant)
         import drjit as dr
@@ -202,10 +104,10 @@ class CollocatedRenderer:
         mi = self.mi
         self.n_faces = len(self.t_pos_idx)
         self.n_vertices_min = int(self.t_pos_idx.max()) + 1
-        self._faces = mi.UInt32(_aligned(self.t_pos_idx, np.uint32))
+        self._faces = mi.UInt32(aligned(self.t_pos_idx, np.uint32))
         # Per face corner UVs, (F*3, 2) flattened; gathered by face id at the hit.
         corner_uv = v_tex[self.t_tex_idx].reshape(-1, 2).astype(np.float32)
-        self._corner_uv = mi.Float(_aligned(corner_uv, np.float32))
+        self._corner_uv = mi.Float(aligned(corner_uv, np.float32))
         self.topology: EdgeTopology = edge_topology(self.t_pos_idx)
         self._scene = None
         self._scene_params = None
@@ -214,7 +116,6 @@ class CollocatedRenderer:
         self.timings: dict[str, float] = {}
         self._t_mark = 0.0
         self._offset = None  # the call's flash offset (3 opaque Floats), see render_batch
-        self._ambient = None  # the call's ambient radiance / I_e (opaque Float)
 
     def _mark(self, phase: str | None, *evaluate) -> None:
         """With ``settings.profile``: evaluate ``evaluate``, wait, and book the time since the
@@ -231,7 +132,7 @@ class CollocatedRenderer:
             self.timings[phase] = self.timings.get(phase, 0.0) + now - self._t_mark
         self._t_mark = now
 
-    # ------------------------------------------------------------------ inputs
+    # ---- Inputs: checked, as flat drjit arrays ----
     def _vertex_array(self, v_pos):
         """(V, 3) drjit tensor / array or numpy -> flat mi.Float (3V), grads kept."""
         dr, mi = self.dr, self.mi
@@ -247,7 +148,7 @@ class CollocatedRenderer:
             arr = np.asarray(v_pos, dtype=np.float32)
             if arr.ndim != 2 or arr.shape[1] != 3:
                 raise RenderError(f"v_pos: expected shape (V, 3), got {arr.shape}")
-            flat = mi.Float(_aligned(arr, np.float32))
+            flat = mi.Float(aligned(arr, np.float32))
         n = dr.width(flat) // 3
         if n < self.n_vertices_min:
             raise RenderError(f"v_pos has {n} vertices but the faces refer to vertex "
@@ -268,37 +169,10 @@ class CollocatedRenderer:
             raise RenderError(f"{name}: expected an (H, W, C) texture with C in {channels}, "
                               f"got shape {shape}")
         if flat is None:
-            flat = mi.Float(_aligned(arr, np.float32))
+            flat = mi.Float(aligned(arr, np.float32))
         return flat, int(shape[0]), int(shape[1]), int(shape[2])
 
-    def _cam_values(self, cam_table, view):
-        """The 24 per-view camera values for each lane: gathers, or broadcast scalars for a
-        single view (a list of opaque scalars)."""
-        dr, mi = self.dr, self.mi
-        if isinstance(cam_table, list):
-            return cam_table
-        base = view * _CAM_STRIDE
-        return [dr.gather(mi.Float, cam_table, base + k) for k in range(_CAM_STRIDE)]
-
-    def _camera_table(self, cameras: Sequence[Camera]):
-        """Per-view Kinv, R_w2c, t_w2c, center (24 floats each): a flat mi.Float for several
-        views, a list of 24 opaque scalars for one."""
-        rows = camera_table(cameras)
-        if len(rows) == 1:
-            return [self.dr.opaque(self.mi.Float, float(x)) for x in rows[0]]
-        return self.mi.Float(_aligned(rows, np.float32))
-
-    def _given_camera_table(self, table, n_views: int):
-        """A caller's (possibly differentiable) flat B x 24 table; one view: 24 broadcast scalars
-        gathered from it (AD sums their lanes back into the table)."""
-        dr, mi = self.dr, self.mi
-        if not isinstance(table, mi.Float) or dr.width(table) != n_views * _CAM_STRIDE:
-            raise RenderError(f"camera_table: expected a flat mi.Float of {n_views} x {_CAM_STRIDE} values")
-        if n_views == 1:
-            return [dr.gather(mi.Float, table, dr.opaque(mi.UInt32, k)) for k in range(_CAM_STRIDE)]
-        return table
-
-    # ------------------------------------------------------------------ scene
+    # ---- The scene: Mitsuba's BVH and the vertex normals ----
     def _update_scene(self, v_flat, n_vertices: int):
         """Mitsuba scene (one mesh) whose BVH matches the current (detached) positions."""
         dr, mi = self.dr, self.mi
@@ -333,176 +207,13 @@ class CollocatedRenderer:
         for i in fidx:
             dr.scatter_reduce(dr.ReduceOp.Add, acc, fn, i)
         vid = dr.arange(mi.UInt32, n_vertices)
-        nrm = _safe_normalize(dr, dr.gather(mi.Vector3f, acc, vid))
+        nrm = safe_normalize(dr, dr.gather(mi.Vector3f, acc, vid))
         flat = dr.zeros(mi.Float, 3 * n_vertices)
         dr.scatter(flat, nrm, vid)
         dr.eval(flat)
         return flat
 
-    # ------------------------------------------------------------------ shading
-    def _trace(self, scene, o, d, coherent: bool = True):
-        """Preliminary intersection of rays (o, d); returns (prim index, hit mask, distance)."""
-        mi = self.mi
-        ray = mi.Ray3f(o, d)
-        pi = scene.ray_intersect_preliminary(ray, coherent=coherent)
-        return pi.prim_index, pi.is_valid(), pi.t
-
-    def _shade(self, o, d, prim, valid, v_flat, n_flat, tex, light=None):
-        """Radiance/I_e toward the camera at the first hit of rays (o, d) (Color3f), differentiable.
-
-        The hit is recomputed from the (differentiable) triangle ``prim`` on the fixed ray.
-        ``light``: per-lane point light positions (the flash beside the lens) for the general
-        model of DESIGN section 3 (l != v); None: the light is at ``o`` (the collocated model).
-        The call's ambient radiance (``self._ambient``, relative to I_e) adds ``A (a_d + a_s)``
-        at every hit (an unoccluded constant environment). Flash offset and ambient light are the
-        scene side of the image formation of :mod:`recon.optimize.formation`, copied here in
-        drjit for speed; ``test_flash_offset_and_ambient_match_the_formation`` in
-        tests/render/test_collocated.py holds the copy to it.
-        """
-        dr, mi = self.dr, self.mi
-        base = prim * 3
-        vi = [dr.gather(mi.UInt32, self._faces, base + k, valid) for k in range(3)]
-        p0, p1, p2 = (dr.gather(mi.Point3f, v_flat, i, valid) for i in vi)
-        # ---- Moller-Trumbore on the fixed ray: t, barycentrics (b1, b2) move with the triangle
-        e1, e2 = p1 - p0, p2 - p0
-        pvec = dr.cross(d, e2)
-        det = dr.dot(e1, pvec)
-        # not a grazing / degenerate hit: |det| > 1e-7 |e1| |e2| (squared, no roots)
-        ok = valid & (det * det > 1e-14 * dr.squared_norm(e1) * dr.squared_norm(e2))
-        inv_det = dr.select(ok, dr.rcp(dr.select(ok, det, 1.0)), 0.0)
-        tvec = o - p0
-        b1 = dr.dot(tvec, pvec) * inv_det
-        qvec = dr.cross(tvec, e1)
-        b2 = dr.dot(d, qvec) * inv_det
-        b0 = 1.0 - b1 - b2
-        y = dr.fma(p0, b0, dr.fma(p1, b1, p2 * b2))
-        # ---- shading normal: interpolated vertex normals, normalized
-        n0, n1, n2 = (dr.gather(mi.Vector3f, n_flat, i, valid) for i in vi)
-        n = _safe_normalize(dr, n0 * b0 + n1 * b1 + n2 * b2)
-        to_o = o - y
-        dist2 = dr.squared_norm(to_o)
-        w = to_o * dr.rsqrt(dr.maximum(dist2, 1e-30))
-        mu = dr.dot(n, w)
-        # 1 - mu^2 as |n x w|^2: exact near the specular peak, where 1 - mu^2 cancels.
-        sin2 = dr.squared_norm(dr.cross(n, w))
-        # ---- textures at the interpolated UV
-        uv = mi.Point2f(0.0)
-        for k, bk in enumerate((b0, b1, b2)):
-            uv += bk * dr.gather(mi.Point2f, self._corner_uv, prim * 3 + k, valid)
-        a_d = _bilinear(dr, mi, tex["diffuse"], uv, valid)
-        a_s = _bilinear(dr, mi, tex["specular"], uv, valid)
-        r = _bilinear(dr, mi, tex["roughness"], uv, valid)
-        r = dr.clip(r, self.settings.r_min, 1.0)
-        alpha = r * r
-        a2 = alpha * alpha
-        if light is not None:
-            out = self._shade_offset(y, n, w, mu, light, a_d, a_s, a2, valid)
-        else:
-            out = self._shade_collocated(mu, sin2, dist2, a_d, a_s, a2, valid)
-        if self._ambient is not None:
-            out = out + dr.select(valid, self._ambient * (a_d + a_s), 0.0)
-        return out
-
-    def _shade_collocated(self, mu, sin2, dist2, a_d, a_s, a2, valid):
-        """The collocated BRDF (DESIGN section 3) times the cosine and the falloff."""
-        dr = self.dr
-        mu_p = dr.maximum(mu, 0.0)
-        den = dr.fma(mu_p * mu_p, a2, sin2)  # mu^2 (a2 - 1) + 1
-        D = a2 * dr.rcp(dr.pi * dr.maximum(den * den, 1e-30))
-        g = dr.rcp(mu_p + dr.sqrt(dr.fma(1.0 - a2, mu_p * mu_p, a2)))  # G1(mu) / (2 mu)
-        spec = D * g * g
-        f = a_d * dr.inv_pi + a_s * spec
-        lit = valid & (mu > 0)
-        return dr.select(lit, f * (mu_p * dr.rcp(dr.maximum(dist2, 1e-30))), 0.0)
-
-    def _shade_offset(self, y, n, w, nv, light, a_d, a_s, a2, valid):
-        """The general model of DESIGN section 3 for a light at ``light`` seen from the camera
-        (unit direction ``w`` from the hit ``y``, ``nv`` = n . w): GGX D(n . h), Schlick F(v . h),
-        separable Smith G1, times n . l / |light - y|^2. No shadow test: the flash sits ~1 cm from
-        the lens, so what the camera sees is lit except in slivers. One of the model's copies
-        listed in :mod:`recon.brdf`."""
-        dr = self.dr
-        lv = light - y
-        dl2 = dr.squared_norm(lv)
-        l = lv * dr.rsqrt(dr.maximum(dl2, 1e-30))  # noqa: E741
-        nl = dr.dot(n, l)
-        nl_p = dr.maximum(nl, 0.0)
-        nv_p = dr.maximum(nv, 0.0)
-        hv = _safe_normalize(dr, l + w)
-        nh = dr.clip(dr.dot(n, hv), 0.0, 1.0)
-        vh = dr.clip(dr.dot(w, hv), 0.0, 1.0)
-        # 1 - (n . h)^2 as |n x h|^2: exact near the specular peak
-        den = dr.fma(nh * nh, a2, dr.squared_norm(dr.cross(n, hv)))
-        D = a2 * dr.rcp(dr.pi * dr.maximum(den * den, 1e-30))
-        one_vh = 1.0 - vh
-        F = a_s + (1.0 - a_s) * (one_vh * one_vh) * (one_vh * one_vh) * one_vh
-        gl = dr.rcp(nl_p + dr.sqrt(dr.fma(1.0 - a2, nl_p * nl_p, a2)))  # G1(n.l) / (2 n.l)
-        gv = dr.rcp(nv_p + dr.sqrt(dr.fma(1.0 - a2, nv_p * nv_p, a2)))
-        f = a_d * dr.inv_pi + D * F * gl * gv
-        lit = valid & (nl > 0) & (nv > 0)
-        return dr.select(lit, f * (nl_p * dr.rcp(dr.maximum(dl2, 1e-30))), 0.0)
-
-    def _lights(self, cam_table, view):
-        """Per-lane flash positions c + R^T t of the call's offset t (camera coordinates), or
-        None when the light is at the camera centre."""
-        if self._offset is None:
-            return None
-        mi = self.mi
-        g = self._cam_values(cam_table, view)
-        R, t = g[9:18], self._offset
-        return mi.Point3f(g[21] + R[0] * t[0] + R[3] * t[1] + R[6] * t[2],
-                          g[22] + R[1] * t[0] + R[4] * t[1] + R[7] * t[2],
-                          g[23] + R[2] * t[0] + R[5] * t[1] + R[8] * t[2])
-
-    # ------------------------------------------------------------------ rays
-    def _primary_rays(self, cam_table, n_views: int, width: int, height: int, spp: int, seed):
-        """Rays of all samples, lane = ((view * h + row) * w + col) * spp + s."""
-        dr, mi = self.dr, self.mi
-        n = n_views * width * height * spp
-        idx = dr.arange(mi.UInt32, n)
-        # Divisors are literals (LLVM turns the divisions into multiplications); the kernels
-        # are compiled again only when the image size or spp changes.
-        pix = idx // spp
-        view = pix // (width * height)
-        p = pix - view * (width * height)
-        row = p // width
-        col = p - row * width
-        ux = mi.sample_tea_float32(idx, seed, 4)
-        uy = mi.sample_tea_float32(idx, seed + 0x9E3779B9, 4)
-        k = int(np.sqrt(spp) + 0.5)
-        if self.settings.stratified and k * k == spp and spp > 1:
-            # Jittered k x k grid over the pixel: each sample is still uniform over the pixel.
-            s = idx - pix * spp
-            sy = s // k
-            sx = s - sy * k
-            ux = (mi.Float(sx) + ux) * (1.0 / k)
-            uy = (mi.Float(sy) + uy) * (1.0 / k)
-        x = mi.Float(col) + ux
-        yv = mi.Float(row) + uy
-        o, d = self._rays_through(cam_table, view, x, yv)
-        return o, d, view
-
-    def _rays_through(self, cam_table, view, x, y):
-        """World rays (origin, unit direction) through image points (x, y) of ``view``."""
-        dr, mi = self.dr, self.mi
-        g = self._cam_values(cam_table, view)
-        Kinv = g[0:9]
-        R = g[9:18]
-        c = mi.Point3f(g[21], g[22], g[23])
-        dc = mi.Vector3f(
-            Kinv[0] * x + Kinv[1] * y + Kinv[2],
-            Kinv[3] * x + Kinv[4] * y + Kinv[5],
-            Kinv[6] * x + Kinv[7] * y + Kinv[8],
-        )
-        # camera -> world: R^T dc
-        dw = mi.Vector3f(
-            R[0] * dc.x + R[3] * dc.y + R[6] * dc.z,
-            R[1] * dc.x + R[4] * dc.y + R[7] * dc.z,
-            R[2] * dc.x + R[5] * dc.y + R[8] * dc.z,
-        )
-        return c, dr.normalize(dw)
-
-    # ------------------------------------------------------------------ public
+    # ---- Public: render, render_batch, render_torch ----
     def render(self, v_pos, diffuse, specular, roughness, cameras: Sequence[Camera],
                light_intensity: float = 1.0, seed: int = 0, flash_offset=None, ambient: float = 0.0):
         """Render a batch of views.
@@ -585,7 +296,7 @@ class CollocatedRenderer:
             return render_projective(self, v_pos, diffuse, specular, roughness, cameras,
                                      light_intensity, seed)
         self._offset = None if offset is None else [dr.opaque(mi.Float, float(x)) for x in offset]
-        self._ambient = dr.opaque(mi.Float, float(ambient) / float(light_intensity)) if ambient > 0 else None
+        ambient_e = dr.opaque(mi.Float, float(ambient) / float(light_intensity)) if ambient > 0 else None
         self._mark(None)
         v_flat, nv = self._vertex_array(v_pos)
         tex = {
@@ -605,15 +316,18 @@ class CollocatedRenderer:
         self._mark("bvh")
         n_flat = self._vertex_normals(v_flat, nv)
         B = len(cameras)
-        cam_table = self._camera_table(cameras) if camera_table is None else \
-            self._given_camera_table(camera_table, B)
+        cam_table = view_table(dr, mi, cameras) if camera_table is None else \
+            given_view_table(dr, mi, camera_table, B)
         self._mark("normals", n_flat)
+        surface = Surface(self._faces, self._corner_uv, v_flat, n_flat, tex, self.settings.r_min,
+                          ambient_e)
         spp = int(self.settings.spp)
         seed_o = dr.opaque(mi.UInt32, np.uint32(seed & 0xFFFFFFFF))
         # ---- Interior: MC over pixel footprints, AD through the integrand
-        o, d, view = self._primary_rays(cam_table, B, w, h, spp, seed_o)
-        prim, valid, _ = self._trace(scene, o, d)
-        L = self._shade(o, d, prim, valid, v_flat, n_flat, tex, self._lights(cam_table, view))
+        o, d, view = primary_rays(dr, mi, cam_table, B, w, h, spp, seed_o, self.settings.stratified)
+        prim, valid, _ = trace(mi, scene, o, d)
+        L = shade(dr, mi, surface, o, d, prim, valid,
+                  flash_positions(dr, mi, cam_table, view, self._offset))
         inv = dr.opaque(mi.Float, float(light_intensity) / spp)
         flat = dr.zeros(mi.Float, B * h * w * 3)
         pix3 = (dr.arange(mi.UInt32, B * h * w * spp) // spp) * 3
@@ -626,8 +340,8 @@ class CollocatedRenderer:
         # ---- Boundary: edge sampling (primal zero, derivative = the silhouette term)
         if self.settings.boundary == "edge" and (dr.grad_enabled(v_flat) or (
                 camera_table is not None and dr.grad_enabled(camera_table))):
-            self._boundary_term(flat, scene, v_flat, n_flat, tex, cameras, cam_table,
-                                float(light_intensity), seed, B, h, w)
+            boundary_term(self, flat, scene, surface, cameras, cam_table, float(light_intensity),
+                          seed)
             self._mark("edge_rays", flat)
         return mi.TensorXf(flat, shape=(B, h, w, 3))
 
@@ -678,207 +392,3 @@ class CollocatedRenderer:
             return out.torch().clone().to(v_pos.device)
         return RenderFunction.apply(self, cameras, float(light_intensity), int(seed),
                                     *tensors, camera_table, (flash_offset, float(ambient)))
-
-    # ------------------------------------------------------------------ boundary
-    def _boundary_term(self, image, scene, v_flat, n_flat, tex, cameras, cam_table,
-                       light_intensity, seed, B, h, w):
-        """Scatter-add the edge-sampled boundary term (primal zero) into ``image`` (flat)."""
-        dr, mi = self.dr, self.mi
-        v_np = dr.detach(v_flat).numpy().reshape(-1, 3).astype(np.float64)
-        seg = silhouette_segments(v_np, self.t_pos_idx, self.topology, cameras)
-        self._mark("silhouettes")
-        counts = np.array([self.settings.edge_count(c.width, c.height) for c in cameras])
-        counts = np.where(seg.total_length > 0, counts, 0)
-        M = int(counts.sum())
-        if M == 0 or len(seg) == 0:
-            return
-        # Per view, one stratified variable over the concatenated silhouette curve (segments
-        # come grouped by view): sample j of n lies uniformly in [j, j + 1) * L / n. Each point
-        # is uniform over the curve length (unbiased), strata lower the variance, and
-        # consecutive samples are neighbours on the curve (coherent rays). Generated in drjit.
-        views = np.arange(B)
-        first = np.searchsorted(seg.view, views, side="left")
-        last = np.maximum(np.searchsorted(seg.view, views, side="right") - 1, first)
-        before = np.concatenate([[0.0], np.cumsum(seg.length)])[first]
-        cum_local = np.cumsum(seg.length) - before[seg.view]  # within each view
-        start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        step = np.where(counts > 0, seg.total_length / np.maximum(counts, 1), 0.0)
-        def f32(a):
-            return mi.Float(_aligned(a, np.float32))
-
-        def u32(a):
-            return mi.UInt32(_aligned(a, np.uint32))
-
-        s_cum, s_len = f32(cum_local), f32(seg.length)
-        j = dr.arange(mi.UInt32, M)
-        view = _search(dr, mi, u32(start[1:]), j, B - 1) if B > 1 else dr.zeros(
-            mi.UInt32, M)
-        jl = j - dr.gather(mi.UInt32, u32(start), view)
-        xi = mi.sample_tea_float32(j, dr.opaque(mi.UInt32, (int(seed) * 2654435761 + 0xED9E)
-                                                & 0xFFFFFFFF), 4)
-        u = (mi.Float(jl) + xi) * dr.gather(mi.Float, f32(step), view)
-        lo = dr.gather(mi.UInt32, u32(first), view)
-        hi = dr.gather(mi.UInt32, u32(last), view)
-        k = _search_range(dr, mi, s_cum, u, lo, hi, int(len(seg)).bit_length())
-        length = dr.gather(mi.Float, s_len, k)
-        t = dr.clip((u - (dr.gather(mi.Float, s_cum, k) - length)) / dr.maximum(length, 1e-30),
-                    0.0, 1.0)
-        ax, ay = dr.gather(mi.Float, f32(seg.a[:, 0]), k), dr.gather(mi.Float, f32(seg.a[:, 1]), k)
-        bx, by = dr.gather(mi.Float, f32(seg.b[:, 0]), k), dr.gather(mi.Float, f32(seg.b[:, 1]), k)
-        x = dr.fma(t, bx - ax, ax)
-        y = dr.fma(t, by - ay, ay)
-        vi0 = dr.gather(mi.UInt32, u32(seg.v0), k)
-        vi1 = dr.gather(mi.UInt32, u32(seg.v1), k)
-        weight = dr.gather(mi.Float, f32(step * light_intensity), view)
-        dr.eval(view, vi0, vi1, x, y, weight)
-        self._mark("edge_sampling")
-        self._boundary_from_samples(image, scene, v_flat, n_flat, tex, cam_table, view, vi0, vi1,
-                                    x, y, weight, B, h, w)
-
-    def _boundary_from_samples(self, image, scene, v_flat, n_flat, tex, cam_table, view, vi0,
-                               vi1, x, y, wgt, B, h, w):
-        dr, mi = self.dr, self.mi
-        g = self._cam_values(cam_table, view)
-        Kinv = g[0:9]
-        R = g[9:18]
-        tr = mi.Vector3f(g[18], g[19], g[20])
-
-        def to_cam(p):
-            return mi.Vector3f(
-                R[0] * p.x + R[1] * p.y + R[2] * p.z,
-                R[3] * p.x + R[4] * p.y + R[5] * p.z,
-                R[6] * p.x + R[7] * p.y + R[8] * p.z,
-            ) + tr
-
-        X0 = to_cam(dr.gather(mi.Point3f, v_flat, vi0))
-        X1 = to_cam(dr.gather(mi.Point3f, v_flat, vi1))
-        lc = dr.cross(X0, X1)
-        # Image line l = K^-T lc: l . (x, y, 1) = 0 on the projected edge.
-        l0 = Kinv[0] * lc.x + Kinv[3] * lc.y + Kinv[6] * lc.z
-        l1 = Kinv[1] * lc.x + Kinv[4] * lc.y + Kinv[7] * lc.z
-        l2 = Kinv[2] * lc.x + Kinv[5] * lc.y + Kinv[8] * lc.z
-        gnorm = dr.detach(dr.sqrt(dr.maximum(l0 * l0 + l1 * l1, 1e-30)))
-        nx = dr.detach(l0) / gnorm
-        ny = dr.detach(l1) / gnorm
-        # Normal displacement of the line at the fixed point (x, y): -(l . x~)/|grad|.
-        q = -(l0 * x + l1 * y + l2) / gnorm
-        vel = q - dr.detach(q)
-        eps = self.settings.edge_eps_px
-        with dr.suspend_grad():
-            vd = dr.detach(v_flat)
-            nd = dr.detach(n_flat)
-            tex_d = {k: (dr.detach(v[0]),) + tuple(v[1:]) for k, v in tex.items()}
-            # One wavefront of 2M rays: lane 2k is sample k offset by -eps n, lane 2k + 1 by
-            # +eps n (neighbouring lanes, coherent rays).
-            M = dr.width(x)
-            dr.eval(nx, ny)
-            lane = dr.arange(mi.UInt32, 2 * M)
-            sid = lane >> 1
-            off = dr.select((lane & 1) == 1, eps, -eps)
-            sx = dr.gather(mi.Float, x, sid) + off * dr.gather(mi.Float, nx, sid)
-            sy = dr.gather(mi.Float, y, sid) + off * dr.gather(mi.Float, ny, sid)
-            lane_view = dr.gather(mi.UInt32, view, sid)
-            o, dvec = self._rays_through(cam_table, lane_view, sx, sy)
-            self._mark("edge_setup")
-            prim, valid, thit = self._trace(scene, o, dvec)
-            thit = dr.select(valid, thit, dr.inf)
-            dr.eval(prim, valid, thit)
-            self._mark("edge_trace")
-            Ls = self._shade(o, dvec, prim, valid, vd, nd, tex_d, self._lights(cam_table, lane_view))
-            dr.eval(Ls)
-            self._mark("edge_shade")
-            even = dr.arange(mi.UInt32, M) * 2
-            Lm = dr.gather(mi.Color3f, Ls, even)
-            Lp = dr.gather(mi.Color3f, Ls, even + 1)
-            tm = dr.gather(mi.Float, thit, even)  # inf where the ray escaped
-            tp = dr.gather(mi.Float, thit, even + 1)
-            # Depth (along the unit ray) of the edge point under (x, y): closest point of the
-            # camera ray and the edge line, in camera coordinates.
-            r = mi.Vector3f(Kinv[0] * x + Kinv[1] * y + Kinv[2], Kinv[3] * x + Kinv[4] * y + Kinv[5],
-                            Kinv[6] * x + Kinv[7] * y + Kinv[8])
-            X0d, X1d = dr.detach(X0), dr.detach(X1)
-            e = X1d - X0d
-            a_ = dr.dot(r, r)
-            b_ = dr.dot(r, e)
-            c_ = dr.dot(e, e)
-            d_ = dr.dot(r, X0d)
-            e_ = dr.dot(e, X0d)
-            den = a_ * c_ - b_ * b_
-            s_r = dr.select(dr.abs(den) > 1e-30, (d_ * c_ - b_ * e_) / den, d_ / a_)
-            t_edge = s_r * dr.norm(r)
-            tol = 1e-3 * t_edge
-            hidden = (tm < t_edge - tol) & (tp < t_edge - tol)
-            dI = dr.select(hidden, 0.0, Lm - Lp) * wgt
-            inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-            px = mi.UInt32(dr.clip(mi.Int32(dr.floor(x)), 0, w - 1))
-            py = mi.UInt32(dr.clip(mi.Int32(dr.floor(y)), 0, h - 1))
-            pix = (view * h + py) * w + px
-            dr.eval(dI, pix, inside)
-        for c, dIc in enumerate((dI.x, dI.y, dI.z)):
-            dr.scatter_reduce(dr.ReduceOp.Add, image, dIc * vel, pix * 3 + c, inside,
-                              mode=dr.ReduceMode.Direct)
-
-
-# ---------------------------------------------------------------------- helpers
-def _safe_normalize(dr, v):
-    """v / |v|, 0 where |v| == 0, finite gradient everywhere."""
-    n2 = dr.squared_norm(v)
-    ok = n2 > 1e-36
-    return v * dr.select(ok, dr.rsqrt(dr.select(ok, n2, 1.0)), 0.0)
-
-
-def _search_range(dr, mi, cum, u, lo, hi, iterations: int):
-    """Per lane, the first index k in [lo, hi] with cum[k] > u (hi if none); cum ascending.
-
-    ``iterations`` must be >= log2(hi - lo + 1) (e.g. the bit length of the array size).
-    """
-    for _ in range(iterations):
-        active = lo < hi
-        mid = (lo + hi) >> 1
-        go_right = active & (dr.gather(mi.Float, cum, mid, active) <= u)
-        lo, hi = dr.select(go_right, mid + 1, lo), dr.select(active & ~go_right, mid, hi)
-    return lo
-
-
-def _search(dr, mi, starts, j, n: int):
-    """Per lane, how many of the n entries of the ascending UInt32 array ``starts`` are <= j."""
-    lo = dr.zeros(mi.UInt32, dr.width(j))
-    hi = lo + n
-    for _ in range(max(int(n).bit_length(), 1)):
-        active = lo < hi
-        mid = (lo + hi) >> 1
-        go_right = active & (dr.gather(mi.UInt32, starts, mid, active) <= j)
-        lo, hi = dr.select(go_right, mid + 1, lo), dr.select(active & ~go_right, mid, hi)
-    return lo
-
-
-def _bilinear(dr, mi, texture, uv, active):
-    """Bilinear lookup (clamp to edge) of a flat (H, W, C) texture at OBJ-convention UVs.
-
-    Texel (i, j) sits at u = (j + 0.5)/W, v = 1 - (i + 0.5)/H. Returns Float (C = 1) or
-    Color3f (C = 3).
-    """
-    data, H, W, C = texture
-    Wf, Hf = mi.Float(W), mi.Float(H)
-    u = dr.select(dr.isfinite(uv.x), uv.x, 0.0)
-    v = dr.select(dr.isfinite(uv.y), uv.y, 0.0)
-    x = u * Wf - 0.5
-    y = (1.0 - v) * Hf - 0.5
-    x = dr.clip(x, -1.0, Wf)
-    y = dr.clip(y, -1.0, Hf)
-    x0f, y0f = dr.floor(x), dr.floor(y)
-    fx, fy = x - x0f, y - y0f
-    x0, y0 = mi.Int32(x0f), mi.Int32(y0f)
-    Wi, Hi = mi.Int32(W), mi.Int32(H)
-    xa = mi.UInt32(dr.clip(x0, 0, Wi - 1))
-    xb = mi.UInt32(dr.clip(x0 + 1, 0, Wi - 1))
-    ya = mi.UInt32(dr.clip(y0, 0, Hi - 1))
-    yb = mi.UInt32(dr.clip(y0 + 1, 0, Hi - 1))
-    dtype = mi.Float if C == 1 else mi.Color3f
-    t00 = dr.gather(dtype, data, ya * W + xa, active)
-    t01 = dr.gather(dtype, data, ya * W + xb, active)
-    t10 = dr.gather(dtype, data, yb * W + xa, active)
-    t11 = dr.gather(dtype, data, yb * W + xb, active)
-    top = dr.lerp(t00, t01, fx)
-    bot = dr.lerp(t10, t11, fx)
-    return dr.lerp(top, bot, fy)

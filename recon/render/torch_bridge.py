@@ -12,7 +12,7 @@ import torch
 
 def camera_table_torch(K: torch.Tensor, world_to_camera: torch.Tensor) -> torch.Tensor:
     """(B, 24) camera table (Kinv, R_w2c, t_w2c, center per view; as
-    :func:`recon.render.collocated.camera_table`) from (B, 3, 3) ``K`` and (B, 3|4, 4)
+    :func:`recon.render.rays.camera_table`) from (B, 3, 3) ``K`` and (B, 3|4, 4)
     ``world_to_camera``, differentiable in both."""
     R = world_to_camera[:, :3, :3]
     t = world_to_camera[:, :3, 3]

@@ -210,8 +210,8 @@ def _tilted_quad(n: int = 24, sub: int = 16):
 
 
 def test_forward_known_values_flash_offset_and_ambient():
-    """The flash beside the lens and ambient light (``_shade_offset`` and the ambient term of
-    ``_shade``) against recon.brdf's general model: a tilted quad with constant maps, every pixel
+    """The flash beside the lens and ambient light (``recon.render.shading.shade_offset`` and the
+    ambient term of ``shade``) against recon.brdf's general model: a tilted quad with constant maps, every pixel
     equal to f(l, v) I n.l / |light - y|^2 + A (a_d + a_s) averaged over the pixel (a 16 x 16
     sub-pixel grid in numpy, float64), the light at c + R^T t."""
     from recon.brdf import eval_brdf
@@ -236,7 +236,7 @@ def test_forward_known_values_flash_offset_and_ambient():
 
 def test_flash_offset_and_ambient_match_the_formation():
     """The renderer's drjit copy of the scene side of the image formation (flash offset and
-    ambient light, ``CollocatedRenderer._shade``/``_shade_offset``, given the keywords
+    ambient light, ``recon.render.shading.shade``/``shade_offset``, given the keywords
     :func:`recon.optimize.formation.renderer_lighting` makes for the main loop) against the
     formation itself (:func:`recon.optimize.formation.surface_radiance`, which the G-buffer fits
     and held-out scorers use) on the same pixels: a tilted quad with smoothly varying maps, the
