@@ -28,8 +28,9 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 from recon.io.cameras import load_cameras  # noqa: E402
 from recon.io.images import read_exr  # noqa: E402
 from recon.io.mesh import read_obj  # noqa: E402
-from recon.optimize.material import (  # noqa: E402
-    DIFFUSE_ONLY, SelectionSettings, compare, select_on_known_mesh)
+from recon.optimize.heldout import compare  # noqa: E402
+from recon.optimize.material import DIFFUSE_ONLY, SelectionSettings  # noqa: E402
+from recon.optimize.material_select import select_on_known_mesh  # noqa: E402
 from recon.optimize.remesh import rasterize_atlas  # noqa: E402
 from recon.optimize.views import Views  # noqa: E402
 from recon.synth.capture import SynthSettings, make_capture  # noqa: E402

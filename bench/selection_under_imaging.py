@@ -130,16 +130,17 @@ def main(argv=None) -> int:
     ap.add_argument("--clustered", action="store_true", help="SEs clustered by tile blocks and views")
     args = ap.parse_args(argv)
     import recon.optimize.material as material
+    import recon.optimize.material_select as material_select
 
     pairs = []
-    compare = material.compare
+    compare = material_select.compare
 
     def recording(richer, current, s):
         res = compare(richer, current, s)
         pairs.append((np.asarray(richer, float), np.asarray(current, float), res))
         return res
 
-    material.compare = recording
+    material_select.compare = recording
     logging.basicConfig(level=logging.WARNING)
     lines = ["| run | compared | chosen | held-out error | uniform specular: gain / SE | "
              "texture RMSE diffuse / specular / roughness | selection s |", "|---|---|---|---|---|---|---|"]

@@ -3,7 +3,7 @@
 Which views are held out (:func:`split_holdout`), and how two models are compared on them
 (:func:`compare`): per-tile errors of the same tiles under both, the richer model kept only
 when its gain beats the noise of the paired differences. The material selection
-(:mod:`recon.optimize.material`), the imaging selection (:mod:`recon.optimize.imaging_select`),
+(:mod:`recon.optimize.material_select`), the imaging selection (:mod:`recon.optimize.imaging_select`),
 the camera refinement's selection (:mod:`recon.optimize.cameras`) and the plateau test
 (:mod:`recon.optimize.schedule`) all decide with it.
 """

@@ -241,7 +241,7 @@ def refit_under(params: ImagingParams, material: MaterialModel, mesh, maps: dict
 def material_scorer_under(params: ImagingParams, mesh, covered: np.ndarray, train_set: ViewSet, heldout_set: ViewSet,
                           light: float, tone_scale: float, s: SelectionSettings, spp: int = 4, seed: int = 0,
                           exposure: dict | None = None):
-    """A ``scorer`` for :func:`recon.optimize.material.select_material` that fits and compares the
+    """A ``scorer`` for :func:`recon.optimize.material_select.select_material` that fits and compares the
     material models under the imaging terms the loop used (``params``: the start of each fit,
     refined with its maps, as :func:`refit_under` does) and scores them as the imaging selection
     does (:func:`heldout_tiles_under`: the held-out views' exposure gains fitted on one

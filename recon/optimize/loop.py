@@ -11,7 +11,7 @@
    decide on refined cameras (the control and the refined run, from the same start and seeds);
 3. **selections**, each deciding with the paired held-out test of
    :func:`recon.optimize.heldout.compare`: the cameras (:mod:`recon.optimize.cameras`), then on
-   the kept run's final model the material model (:mod:`recon.optimize.material`) and the imaging
+   the kept run's final model the material model (:mod:`recon.optimize.material_select`) and the imaging
    terms (:mod:`recon.optimize.imaging_select`) (:func:`_select_models`);
 4. **outputs** (:func:`_write_outputs`): ``mesh.obj``, the maps, ``log.jsonl``, ``summary.json``
    and ``cameras.json``.
@@ -47,7 +47,8 @@ from recon.optimize.imaging import ImagingSettings, material_scorer_under, refit
 from recon.optimize.imaging_select import run_imaging_selection
 from recon.optimize.iteration import MAP_NAMES, Stage, map_values
 from recon.optimize.loop_imaging import LoopImaging
-from recon.optimize.material import model_from_settings, select_material
+from recon.optimize.material import model_from_settings
+from recon.optimize.material_select import select_material
 from recon.optimize.radiometry import ESTIMATE_SIZE, LightScale, LightScaleError, clipped_fraction, estimate_light_scale
 from recon.optimize.remesh import topology_report
 from recon.optimize.run import OptimizeError, Progress, Run, Timer, execute, save

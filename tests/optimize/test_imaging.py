@@ -221,7 +221,8 @@ def test_material_selection_under_the_imaging_terms(exposure_jitter):
     (0.125) and the textured specular passes (gain 3.0 SE): the selection finds the object's own
     model, its maps fitted under the gains."""
     from recon.optimize.imaging import material_scorer_under
-    from recon.optimize.material import MaterialModel, SelectionSettings, select_material
+    from recon.optimize.material import MaterialModel, SelectionSettings
+    from recon.optimize.material_select import select_material
 
     p, im_fit, ev = exposure_jitter  # the imaging selection's fit: the exposure term alone
     assert ev["chosen"] == ["exposure"], ev["candidates"]

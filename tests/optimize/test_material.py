@@ -13,14 +13,9 @@ from recon.io.cameras import load_cameras
 from recon.io.images import read_exr
 from recon.io.mesh import read_obj
 from recon.optimize.gbuffer import GBuffer, shade
-from recon.optimize.material import (
-    DIFFUSE_ONLY,
-    MaterialModel,
-    SelectionSettings,
-    compare,
-    select_on_known_mesh,
-    selection_steps,
-)
+from recon.optimize.heldout import compare
+from recon.optimize.material import DIFFUSE_ONLY, MaterialModel, SelectionSettings
+from recon.optimize.material_select import select_on_known_mesh, selection_steps
 from recon.optimize.remesh import rasterize_atlas
 from recon.optimize.settings import OptimizeSettings
 from recon.optimize.views import Views
