@@ -244,7 +244,18 @@ def _select_models(run: Run, st: Stage, final: Mesh, held_cams: dict | None, ima
                    timer: Timer) -> tuple[dict, object, dict]:
     """The material model and the imaging terms of the kept run's final model (``final``, the
     maps of ``st``), each selected on the held-out views (with the final model's cameras):
-    returns the final maps, the material model and the summary's selection entries."""
+    returns the final maps, the material model and the summary's selection entries.
+
+    The maps the asset carries come from the last of these steps that runs:
+
+    1. ``select_material``: the material selection (:mod:`recon.optimize.material_select`),
+       its candidates fitted under the loop's imaging terms when the loop chose any and
+       ``select_material_under_imaging`` is on, else under the ideal formation;
+    2. when the loop chose imaging terms and neither step 1 fitted under them nor step 3 will
+       run: the maps refitted under them (:func:`recon.optimize.imaging.refit_under`);
+    3. ``select_imaging``: the imaging selection (:mod:`recon.optimize.imaging_select`) on the
+       maps and model so far.
+    """
     settings, views, heldout = run.settings, run.views, run.heldout
     light, tone_scale = run.light, run.tone_scale
     with torch.no_grad():
