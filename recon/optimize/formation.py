@@ -43,8 +43,8 @@ Where it is applied:
 - the scene side (flash and ambient light, the first line) by :func:`surface_radiance` on the
   G-buffer's samples: the G-buffer fits and every held-out scorer
   (:meth:`recon.optimize.imaging.ImagingProblem.render`); in the main loop the differentiable
-  renderer shades it with its own drjit copy (``CollocatedRenderer._shade`` and
-  ``_shade_offset``, keywords from :func:`renderer_lighting`), tested against
+  renderer shades it with its own drjit copy (:func:`recon.render.shading.shade` and
+  :func:`recon.render.shading.shade_offset`, keywords from :func:`renderer_lighting`), tested against
   :func:`surface_radiance` (``test_flash_offset_and_ambient_match_the_formation`` in
   tests/render/test_collocated.py);
 - the camera side (the second line) by :func:`camera_response`, on the G-buffer's pixels and on
