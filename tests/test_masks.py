@@ -249,6 +249,23 @@ def test_consistent_masks_fill_what_one_view_misses_and_drop_what_it_adds(ring_v
         assert _iou(fixed[k], truth[k]) > 0.93
 
 
+def test_consistent_masks_restore_a_dark_rim_along_the_outline(ring_views):
+    """Surfaces seen at grazing angles are lit at grazing angles: a view's flash-falloff mask
+    loses a rim along its outline, which borders the background (no notch to fill). The other
+    views see those surfaces face-on: their hull gives the rim back."""
+    from recon.masks.common import erode
+    from recon.masks.consistent import consistent_masks
+
+    cams, truth = ring_views
+    masks = [m.copy() for m in truth]
+    masks[2] = erode(truth[2], 3)
+    fixed, info = consistent_masks(masks, cams)
+    assert info["applied"]
+    before, after = _iou(masks[2], truth[2]), _iou(fixed[2], truth[2])
+    assert before < 0.85 and after > max(0.9, before + 0.08), (before, after)
+    assert not (fixed[2] & ~truth[2]).sum() > 0.05 * truth[2].sum()  # nothing beyond the outline
+
+
 def test_consistent_masks_need_views(ring_views):
     from recon.io.cameras import CameraSet
     from recon.masks.consistent import consistent_masks

@@ -11,6 +11,12 @@ correct both:
   covers it, and a hole or notch of the mask that this hull covers, and that the mask encloses
   (most of its outline borders the mask), is filled. A real opening (a handle) is seen through
   by other views too, which carve it from that hull: it stays open.
+- **It cuts the object's outline**: the surfaces seen at grazing angles are lit at grazing angles,
+  so a rim along the outline falls below the threshold (more so in a room whose lit wall raises
+  the background's level), and a rim borders the background, so it is no notch. The other views
+  see those surfaces face-on and lit: their leave-one-out hull covers the rim, and each mask
+  takes that hull's silhouette shrunk by a voxel's footprint (``rim``; the hull is strict: a
+  voxel stays only where all but ``hole_tolerance`` of the other views hold it in their masks).
 - **It takes lit background**: a lamp, a lit wall or a table in the room touching the object's
   outline. No 3D region is inside most views' masks there: the hull voted from all views
   (:func:`recon.masks.vote.carve`: a voxel goes when more than ``tolerance`` of the views that
@@ -48,6 +54,7 @@ class ConsistentSettings:
     resolution: int = 128  # voxels along the longest side of the fine grid
     work_size: int = 800  # long side of the masks the vote reads
     min_views: int = 6  # fewer views: the masks stay as they are
+    rim: bool = True  # each mask takes the other views' (strict) hull's silhouette, shrunk by a voxel's footprint
 
     def __post_init__(self):
         if not 0 <= self.tolerance < 0.5 or not 0 <= self.hole_tolerance < 0.5:
@@ -69,6 +76,14 @@ def _resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
     if mask.shape == (height, width):
         return mask
     return cv2.resize(mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA) >= 0.5
+
+
+def _footprint(cam, hull) -> int:
+    """Pixels of a voxel's splat radius in ``cam`` at the hull's centre (:meth:`recon.masks.vote.Hull.project`)."""
+    lo, hi = hull.bbox()
+    _, z = cam.project(0.5 * (lo + hi)[None])
+    f = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
+    return int(np.clip(np.ceil(0.5 * np.sqrt(3.0) * hull.step * f / max(float(z[0]), 1e-12)), 1, 64))
 
 
 def fill_enclosed(mask: np.ndarray, support: np.ndarray, enclosed: float) -> np.ndarray:
@@ -135,7 +150,11 @@ def consistent_masks(masks: list[np.ndarray], cams: CameraSet,
         m = masks[i]
         keep = _resize_mask(dilate(hull.project(w), 1), cam.width, cam.height)
         support = _resize_mask(others[i], cam.width, cam.height)
-        new = fill_enclosed(m, support, settings.enclosed) & keep
+        new = fill_enclosed(m, support, settings.enclosed)
+        if settings.rim:
+            # the silhouette of the voxels' centres: the splats reach a footprint beyond them
+            new = new | _resize_mask(erode(others[i], _footprint(w, hull)), cam.width, cam.height)
+        new = new & keep
         views[cam.stem] = {"added": float((new & ~m).mean()), "removed": float((m & ~new).mean())}
         out.append(new)
     lo, hi = hull.bbox()
