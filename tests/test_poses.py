@@ -470,6 +470,18 @@ def test_sfm_tracks_reproject_through_the_object_frame_cameras(synthetic_sfm):
         SfmTracks.load(results / "poses", est, stems)
 
 
+def _turn_every_camera(rec, degrees: float) -> None:
+    """Turn every registered camera of ``rec`` by ``degrees`` about its own center (vertical
+    axis): the object leaves the masks."""
+    import pycolmap
+
+    c, s_ = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    yaw = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]])
+    for i in rec.reg_image_ids():
+        frame = rec.frames[rec.images[i].frame_id]
+        M = np.asarray(frame.rig_from_world.matrix())
+        frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(yaw @ M[:, :3]), yaw @ M[:, 3])
+
 def test_refinement_never_keeps_implausible_intrinsics(synthetic_sfm):
     """The final free bundle adjustment once drifted on the demo (f 264 -> 1552 px, k = -58)
     and emptied the visual hull. A refinement whose intrinsics leave the plausible range (here:
@@ -492,12 +504,7 @@ def test_refinement_never_keeps_implausible_intrinsics(synthetic_sfm):
     # (every camera turned 8 degrees about its own center: the object leaves the masks)
     masks = {p.stem: read_mask(p) for p in sorted((results / "masks").glob("*.png"))}
     right = rp.silhouette_consistency(rec, masks)
-    c, s_ = np.cos(np.radians(8.0)), np.sin(np.radians(8.0))
-    yaw = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]])
-    for i in rec.reg_image_ids():
-        frame = rec.frames[rec.images[i].frame_id]
-        M = np.asarray(frame.rig_from_world.matrix())
-        frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(yaw @ M[:, :3]), yaw @ M[:, 3])
+    _turn_every_camera(rec, 8.0)
     wrong = rp.silhouette_consistency(rec, masks)
     assert right > 0.95 and wrong < 0.7, (right, wrong)
     assert rp.silhouette_consistency(rec, {}) is None
@@ -552,12 +559,7 @@ def test_silhouette_consistency_counts_the_objects_points_only(synthetic_sfm):
     ids = [p for p, ok in obj.items() if ok]
     assert silhouette_consistency(rec, cut, keep={p: True for p in ids}) == pytest.approx(right)
     assert silhouette_consistency(rec, cut, keep={}) is None
-    c, s_ = np.cos(np.radians(8.0)), np.sin(np.radians(8.0))
-    yaw = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]])
-    for i in rec.reg_image_ids():
-        frame = rec.frames[rec.images[i].frame_id]
-        M = np.asarray(frame.rig_from_world.matrix())
-        frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(yaw @ M[:, :3]), yaw @ M[:, 3])
+    _turn_every_camera(rec, 8.0)
     wrong = silhouette_consistency(rec, cut)
     assert object_points(rec, cut) == obj  # chosen by their own features, whatever the cameras
     assert wrong < 0.7, wrong
