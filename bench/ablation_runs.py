@@ -70,13 +70,15 @@ def scaled_stages(factor: float) -> list[dict]:
 
 
 def _known_pins() -> dict:
-    """NEUTRAL_PINS restricted to the keys the optimize settings of this tree know."""
+    """NEUTRAL_PINS restricted to the keys the optimize settings of this tree know (bench/optimize.py's
+    ``--set`` takes a setting by its own name and puts it into its section)."""
     import dataclasses
 
     sys.path.insert(0, str(REPO))
     from recon.optimize.settings import OptimizeSettings
+    from recon.sections import leaf_paths
 
-    known = {f.name for f in dataclasses.fields(OptimizeSettings)}
+    known = {f.name for f in dataclasses.fields(OptimizeSettings)} | set(leaf_paths(OptimizeSettings))
     return {k: v for k, v in NEUTRAL_PINS.items() if k in known}
 
 

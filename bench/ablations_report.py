@@ -35,9 +35,9 @@ def _default_weights() -> str:
     """The optimizer's default prior weights, as the report states them (every run uses them)."""
     import dataclasses
 
-    from recon.optimize.settings import OptimizeSettings  # imports torch and the renderer: only when writing
+    from recon.optimize.settings import LossSettings  # imports torch and the renderer: only when writing
 
-    defaults = {f.name: f.default for f in dataclasses.fields(OptimizeSettings)}
+    defaults = {f.name: f.default for f in dataclasses.fields(LossSettings)}
     return ", ".join(f"{k} {defaults[k]:g}" for k in ("w_laplacian", "w_normal", "w_specular", "w_roughness"))
 
 

@@ -41,6 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from camera_refine import camera_errors  # noqa: E402 (bench helper beside this file)
 
+from recon import sections  # noqa: E402
 from recon.config import load_preset  # noqa: E402
 from recon.io.cameras import Camera, CameraSet, load_cameras  # noqa: E402
 from recon.io.images import read_exr  # noqa: E402
@@ -143,7 +144,7 @@ def main(argv=None) -> int:
                   None, CameraSet(tuple(frames), sfm.light_intensity), size)
         vs = v.at(size)
         for steps, wt in itertools.product(args.steps, args.tracks):
-            s = settings_from_dict({**base, "camera_align_iterations": int(steps)}, "bench")
+            s = sections.replace(settings_from_dict(base, "bench"), align_iterations=int(steps))
             t0 = time.perf_counter()
             tr = None
             if wt > 0:

@@ -2,7 +2,7 @@
 
 One synthetic capture (``python -m recon synth``, known cameras in ``gt/cameras.json``) is
 optimized from cameras with controlled errors and from SfM cameras, each time with
-``refine_cameras: select`` (one call runs the control without refinement and the run with it,
+``cameras.refine: select`` (one call runs the control without refinement and the run with it,
 from the same visual hull and seeds, and keeps one on the held-out views). Printed per
 configuration:
 
@@ -50,7 +50,7 @@ from recon.config import load_preset  # noqa: E402
 from recon.io.cameras import Camera, CameraSet, load_cameras, save_cameras  # noqa: E402
 from recon.io.mesh import Mesh, read_mesh  # noqa: E402
 from recon.metrics import align_cameras, chamfer, pose_errors, rotation_angle_deg  # noqa: E402
-from recon.optimize import optimize_capture, settings_from_dict  # noqa: E402
+from recon.optimize import OptimizeSettings, optimize_capture, settings_from_dict  # noqa: E402
 from recon.optimize.camera_refine import CameraRefinement, rotation_exp  # noqa: E402
 
 STATE_LIGHT = False  # --state-light
@@ -214,7 +214,7 @@ def one(name: str, cameras_json: Path, images, masks, settings, gt_mesh, gt_cams
     train = [c for c in cams.frames if c.stem not in held]
     ctrl_mesh, _ = run_mesh(d / "optimize" / "checkpoints")
     ref_mesh, state = run_mesh(d / "optimize" / "checkpoints" / "cameras")
-    ref = CameraRefinement(train, settings.camera_prior(), intrinsics=settings.camera_intrinsics)
+    ref = CameraRefinement(train, settings.camera_prior(), intrinsics=settings.cameras.intrinsics)
     ref.load_state_dict(state["cameras"]["params"])
     refined = ref.cameras(range(len(train)), train)
     sel = info.get("selection", {})
@@ -295,7 +295,8 @@ def main(argv=None) -> int:
     for kv in args.set:
         k, v = kv.split("=", 1)
         values[k] = yaml.safe_load(v)
-    values["refine_cameras"] = "select"
+    values, _ = sections.move_flat(OptimizeSettings, values)  # a --set key is a setting's own name: into its section
+    values["cameras"] = {**values.get("cameras", {}), "refine": "select"}
     settings = settings_from_dict(values, f"preset {args.preset} + --set")
     gt_mesh = read_mesh(cap / "gt" / "mesh.obj")
     gt_cams = load_cameras(cap / "gt" / "cameras.json")

@@ -48,10 +48,11 @@ from recon.io.cameras import Camera, load_cameras, look_at  # noqa: E402
 from recon.io.images import read_exr  # noqa: E402
 from recon.io.mesh import Mesh, read_mesh, write_obj  # noqa: E402
 from recon.metrics import chamfer, image_rmse  # noqa: E402
-from recon.optimize import optimize_capture, settings_from_dict  # noqa: E402
+from recon.optimize import OptimizeSettings, optimize_capture, settings_from_dict  # noqa: E402
 from recon.optimize.guard import self_intersecting_faces  # noqa: E402
 from recon.optimize.remesh import topology_report  # noqa: E402
 from recon.render.envmap import envmap_image, relight_rmse  # noqa: E402
+from recon.sections import move_flat  # noqa: E402
 
 log = logging.getLogger("bench.optimize")
 
@@ -227,6 +228,7 @@ def main(argv=None) -> int:
     for kv in args.set:
         k, v = kv.split("=", 1)
         values[k] = yaml.safe_load(v)
+    values, _ = move_flat(OptimizeSettings, values)  # a --set key is a setting's own name: into its section
     settings = settings_from_dict(values, f"preset {args.preset} + --set")
     gt = read_mesh(cap / "gt" / "mesh.obj")
     args.out.mkdir(parents=True, exist_ok=True)

@@ -12,8 +12,8 @@ cameras and masks given so that only the imaging differs):
 
 Runs the whole workflow (Snakemake up to ``report/metrics.json``) on ``ideal`` (with the loop's
 imaging selection off and on: does it keep nothing there?), on ``phone``
-with ``imaging_loop: off`` (the ideal formation in the loop) and on ``phone`` with
-``imaging_loop: select`` (the selection on stage 0's model, the later stages under the chosen
+with ``imaging.loop: off`` (the ideal formation in the loop) and on ``phone`` with
+``imaging.loop: select`` (the selection on stage 0's model, the later stages under the chosen
 terms), all at ``--preset``; reads the report's metrics (DESIGN section 5: accuracy and
 completeness in the unit bounding box, held-out sRGB RMSE, texture RMSE) and the optimize
 stage's wall time and chosen terms. Prints a table with ratios to ``ideal`` and writes
@@ -44,10 +44,10 @@ log = logging.getLogger("bench.phone_geometry")
 PHONE = {"format": "jpg", "tone_curve": "phone", "flash_offset": (0.19, 0.0, 0.0), "exposure_jitter": 0.25,
          "exposure_variation": 0.5, "ambient": 0.1, "falloff": (-0.35, 0.0), "wb_jitter": 0.02}
 RUNS = {  # name -> (capture, optimize overrides in capture.yaml)
-    "ideal": ("ideal", {"imaging_loop": "off"}),
-    "ideal_loop_select": ("ideal", {"imaging_loop": "select"}),
-    "phone_loop_off": ("phone", {"imaging_loop": "off"}),
-    "phone_loop_select": ("phone", {"imaging_loop": "select"}),
+    "ideal": ("ideal", {"imaging": {"loop": "off"}}),
+    "ideal_loop_select": ("ideal", {"imaging": {"loop": "select"}}),
+    "phone_loop_off": ("phone", {"imaging": {"loop": "off"}}),
+    "phone_loop_select": ("phone", {"imaging": {"loop": "select"}}),
 }
 
 

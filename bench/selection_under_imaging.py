@@ -37,7 +37,7 @@ sys.path.insert(0, str(REPO))
 import recon.optimize.loop as loop_module  # noqa: E402
 from recon.metrics import Similarity  # noqa: E402
 from recon.optimize import checkpoint as ckpt  # noqa: E402
-from recon.optimize import optimize_from_dirs, settings_from_dict  # noqa: E402
+from recon.optimize import optimize_from_dirs, settings_from_record  # noqa: E402
 
 log = logging.getLogger("bench.selection_under_imaging")
 
@@ -73,7 +73,7 @@ def redo(res: Path, out: Path, under: bool) -> dict:
     loop_module.ckpt.load = _load_ignoring_fingerprint
     try:
         optimize_from_dirs(views, res / "poses" / "undistorted" / "masks", res / "poses" / "cameras.json",
-                           res / "uv" / "mesh.obj", out, settings_from_dict(settings), progress=False,
+                           res / "uv" / "mesh.obj", out, settings_from_record(settings), progress=False,
                            plane_json=plane if plane.is_file() else None)
     finally:
         loop_module.ckpt.load = load

@@ -10,9 +10,9 @@ rings above it; no masks), run through the whole workflow (Snakemake up to
 
 - ``given``: the capture's true ``cameras.json`` (exact by contract; SfM skipped);
 - ``sfm``: the same photos without ``cameras.json``: COLMAP's cameras, refined by the renderer
-  as the preset says (``refine_cameras: select`` in balanced and accurate: the held-out views
+  as the preset says (``cameras.refine: select`` in balanced and accurate: the held-out views
   decide);
-- ``sfm_refine_off``: the same with ``refine_cameras: off`` (what the refinement changes).
+- ``sfm_refine_off``: the same with ``cameras.refine: off`` (what the refinement changes).
 
 Printed per run, from the report (DESIGN section 5; SfM runs aligned to the truth by the
 similarity of the camera centres): accuracy and completeness in the unit bounding box and their
@@ -56,7 +56,7 @@ from recon.metrics import Similarity, chamfer, seen_chamfer, umeyama  # noqa: E4
 from recon.synth.capture import PRESETS  # noqa: E402
 
 log = logging.getLogger("bench.sfm_cameras")
-RUNS = {"given": {}, "sfm": {}, "sfm_refine_off": {"refine_cameras": "off"}}
+RUNS = {"given": {}, "sfm": {}, "sfm_refine_off": {"cameras": {"refine": "off"}}}
 
 
 def make(root: Path, args) -> Path:

@@ -133,6 +133,7 @@ def test_flat_key_of_an_old_capture_yaml_still_works(tmp_path, caplog):
 
 
 def test_no_settings_class_over_40_fields():
+    from recon.optimize.settings import OptimizeSettings
     from recon.synth.settings import SynthSettings
 
     def classes(cls):
@@ -140,6 +141,78 @@ def test_no_settings_class_over_40_fields():
         for sub in sections.section_types(cls).values():
             yield from classes(sub)
 
-    for top in (PoseSettings, SynthSettings):
+    for top in (PoseSettings, SynthSettings, OptimizeSettings):
         for cls in classes(top):
             assert len(dataclasses.fields(cls)) <= 40, (cls.__name__, len(dataclasses.fields(cls)))
+
+
+# ---- OptimizeSettings ----
+def _optimize(tmp_path, preset_text, capture_text):
+    presets = tmp_path / "presets"
+    presets.mkdir(parents=True)
+    (presets / "draft.yaml").write_text(preset_text)
+    cap = tmp_path / "cap"
+    cap.mkdir()
+    (cap / "capture.yaml").write_text(capture_text)
+    return rc.stage_settings("optimize", "draft", cap, presets), cap
+
+
+def test_optimize_flat_keys_of_an_old_capture_yaml_still_work(tmp_path, caplog):
+    """A flat key (``spp``) and a renamed one (``refine_cameras``, now ``cameras.refine``) in an
+    older capture.yaml: each moved to its place with one line naming the file and the place; the
+    capture's value wins over the preset's section."""
+    from recon.optimize.settings import OptimizeSettings, settings_from_dict
+
+    values, cap = _optimize(tmp_path, "optimize: {render: {resolution: 64, spp: 2}, cameras: {refine: select}}\n",
+                            "optimize: {spp: 8, refine_cameras: 'off', camera_sigma_focal: 0.05, seed: 3}\n")
+    with caplog.at_level(logging.WARNING, logger="recon.config"):
+        s = settings_from_dict(values)
+    assert (s.render.resolution, s.render.spp, s.cameras.refine, s.cameras.sigma_focal, s.seed) == \
+        (64, 8, "off", 0.05, 3)
+    assert s == sections.replace(OptimizeSettings(), resolution=64, spp=8, refine="off", sigma_focal=0.05, seed=3)
+    file = cap / "capture.yaml"
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{file}: 'spp' is deprecated here: its place is now 'render.spp' (OptimizeSettings sections); move it there",
+        f"{file}: 'refine_cameras' is deprecated here: its place is now 'cameras.refine' (OptimizeSettings "
+        "sections); move it there",
+        f"{file}: 'camera_sigma_focal' is deprecated here: its place is now 'cameras.sigma_focal' "
+        "(OptimizeSettings sections); move it there"]
+
+
+def test_optimize_keys_that_name_no_place_are_refused(tmp_path):
+    from recon.optimize.settings import settings_from_dict
+
+    values, cap = _optimize(tmp_path, "optimize: {}\n", "optimize: {sppp: 8}\n")
+    with pytest.raises(rc.ConfigError, match=r"capture.yaml: unknown OptimizeSettings key\(s\) \['sppp'\]; valid "
+                                             r"keys: .*\(in sections: cameras, imaging, light, loss, material, optim"):
+        settings_from_dict(values)
+    values, cap = _optimize(tmp_path / "b", "optimize: {}\n", "optimize: {cameras: {refine_cameras: 'off'}}\n")
+    with pytest.raises(rc.ConfigError, match=r"unknown OptimizeSettings.cameras key\(s\) \['refine_cameras'\]"):
+        settings_from_dict(values)  # inside its section a key has its new name only
+    values, cap = _optimize(tmp_path / "c", "optimize: {}\n", "optimize: {render: {spp: 0}}\n")
+    with pytest.raises(rc.ConfigError, match=r"capture.yaml: invalid OptimizeSettings.render \(spp must be >= 1"):
+        settings_from_dict(values)
+
+
+def test_optimize_flat_python_keywords_and_the_flat_record():
+    """Flat keywords and reads still work, with a DeprecationWarning naming the place; to_dict()
+    records the settings flat under the names from before the sections (summary.json, the
+    checkpoints' fingerprint), and settings_from_record builds them back."""
+    from recon.optimize import checkpoint
+    from recon.optimize.settings import RECORDED_ORDER, OptimizeSettings, settings_from_record
+
+    with pytest.warns(DeprecationWarning, match="refine_cameras -> cameras.refine"):
+        s = OptimizeSettings(refine_cameras="off", spp=8)
+    assert (s.cameras.refine, s.render.spp) == ("off", 8)
+    with pytest.warns(DeprecationWarning, match=r"OptimizeSettings.w_edge is now OptimizeSettings.loss.w_edge"):
+        assert s.w_edge == s.loss.w_edge
+    record = s.to_dict()
+    assert list(record) == list(RECORDED_ORDER)
+    assert (record["refine_cameras"], record["spp"], record["imaging_terms"]) == ("off", 8, list(s.imaging.terms))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        again = settings_from_record(record)
+    assert again == s
+    assert checkpoint.fingerprint(again.to_dict(), []) == checkpoint.fingerprint(record, [])
+    # a record without the keys added later still reads (their defaults)
+    assert settings_from_record({k: v for k, v in record.items() if k != "w_imaging"}) == s

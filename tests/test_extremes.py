@@ -42,7 +42,7 @@ SYNTH = dict(object="blob", n_views=8, width=48, height=36, format="exr", spp=4,
              texture_size=64, noise=False, write_gt_linear=False)
 INIT_MESH = InitMeshSettings(resolution=32, target_faces=1000)
 UV = UVSettings(texture_size=64)
-OPTIMIZE = dict(resolution=48, spp=1, views_per_iteration=2, checkpoint_every=100,
+OPTIMIZE = dict(render=dict(resolution=48, spp=1), schedule=dict(views_per_iteration=2, checkpoint_every=100),
                 stages=[dict(edge_length=0.08, texture_size=32, iterations=8),
                         dict(edge_length=0.06, texture_size=32, iterations=6)])
 # The scale cases: one stage. Between stages xatlas charts the remeshed surface anew, and
@@ -334,7 +334,7 @@ def test_black_object_with_given_masks_finishes_finite(runs):
     """With the object's masks given, the black object runs through; the maps darken."""
     run = runs.get("black_object_masks", given_masks=True, albedo=0.0, specular=0.0, write_masks=True)
     assert_finished(run, validate=False)
-    init = 0.3  # OptimizeSettings.init_diffuse
+    init = 0.3  # OptimizeSettings.material.init_diffuse
     assert read_exr(run.out("optimize") / "diffuse.exr").mean() < init
 
 

@@ -1,7 +1,9 @@
 """The optimize stage: shape and SVBRDF from flash photos by differentiable rendering.
 
 Public API: :func:`optimize_capture`, :func:`optimize_from_dirs` (the Snakemake entry),
-:class:`OptimizeSettings`, :class:`StageSettings`, :func:`settings_from_dict`.
+:class:`OptimizeSettings` (in sections), :class:`StageSettings`, :func:`settings_from_dict` (a
+preset's or capture.yaml's ``optimize:``), :func:`settings_from_record` (summary.json's flat
+``settings``).
 
 Where things are (:func:`~recon.optimize.loop.optimize_capture` is the stage's table of contents:
 inputs -> run(s) -> selections -> outputs):
@@ -27,7 +29,7 @@ inputs -> run(s) -> selections -> outputs):
 """
 
 from recon.optimize.loop import OptimizeError, optimize_capture, optimize_from_dirs
-from recon.optimize.settings import OptimizeSettings, StageSettings, settings_from_dict
+from recon.optimize.settings import OptimizeSettings, StageSettings, settings_from_dict, settings_from_record
 
 __all__ = ["OptimizeError", "OptimizeSettings", "StageSettings", "optimize_capture", "optimize_from_dirs",
-           "settings_from_dict"]
+           "settings_from_dict", "settings_from_record"]

@@ -2,7 +2,7 @@
 held-out views, the held-out views aligned to a fixed model, the cameras the model goes with.
 
 Cameras refined by the renderer (issue 17, :mod:`recon.optimize.camera_refine`): with
-``refine_cameras`` on (cameras from SfM) every training view's pose and the shared intrinsics
+``cameras.refine`` on (cameras from SfM) every training view's pose and the shared intrinsics
 are parameters of the same objective (their prior is its ``camera`` term), stepped by their own
 Adam after the surface's (:class:`CameraFit`), the similarity gauge projected out after each
 step. With "select" the run is made twice, without (the control) and with the refinement, from
@@ -51,9 +51,9 @@ class CameraFit:
     live across the coarse-to-fine stages (the views are the same in every stage)."""
 
     def __init__(self, views: Views, settings: OptimizeSettings, first_stage: int = 0):
-        self.first_stage = int(first_stage)  # the cameras are held before this stage (camera_first_stage)
-        self.ref = CameraRefinement(views.cameras, settings.camera_prior(), intrinsics=settings.camera_intrinsics)
-        self.opt = torch.optim.Adam(self.ref.param_groups(), betas=settings.betas)
+        self.first_stage = int(first_stage)  # the cameras are held before this stage (cameras.first_stage)
+        self.ref = CameraRefinement(views.cameras, settings.camera_prior(), intrinsics=settings.cameras.intrinsics)
+        self.opt = torch.optim.Adam(self.ref.param_groups(), betas=settings.optim.betas)
         for g in self.opt.param_groups:
             g["base_lr"] = g["lr"]
 
@@ -77,14 +77,14 @@ def align_heldout(run: Run, st: Stage) -> dict:
     """Align the held-out views' poses to a run's fixed final model; their held-out error.
 
     The held-out cameras (with the run's refined intrinsics, if any) get per-view pose
-    corrections (no gauge: the model is fixed) fitted for ``camera_align_iterations`` Adam steps
+    corrections (no gauge: the model is fixed) fitted for ``cameras.align_iterations`` Adam steps
     on the rendering loss at ``select_image_size`` (rates decaying to 1/10, the camera prior
     added), as bundle-adjusting methods evaluate novel views. Returns ``viewset`` (the held-out
     targets with the aligned cameras), ``world_to_camera`` (stem -> aligned (4, 4) pose),
     ``tiles`` (per-tile held-out errors, :func:`recon.optimize.material.heldout_error`) and
     ``corrections`` (of the held-out poses).
 
-    Under the loop's imaging terms (``imaging_loop``) the held-out views are rendered as the
+    Under the loop's imaging terms (``imaging.loop``) the held-out views are rendered as the
     training views are (flash offset and ambient in the renderer, falloff and tone curve on the
     images) with exposure gains of their own, fitted with the poses (exposure prior); their
     errors are those of the imaging selection (gains cross-fitted on a checkerboard's tiles,
@@ -94,7 +94,7 @@ def align_heldout(run: Run, st: Stage) -> dict:
     errors the cameras do not cause.
     """
     settings = run.settings
-    size = int(settings.select_image_size)
+    size = int(settings.select.select_image_size)
     vs = run.heldout.at(size)
     at_size = list(vs.cameras)
     if run.cameras is not None:
@@ -113,7 +113,7 @@ def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], sett
     """:func:`align_heldout` of views ``vs`` (starting from ``cameras``, at the size of ``vs``)
     to a fixed model: ``mesh`` and its map values (``diffuse``, ``specular``, ``roughness``
     tensors), rendered under ``imaging`` (the loop's imaging terms, if it has chosen any; None:
-    ``imaging_loop`` off). With the loop on the errors are always the imaging selection's white
+    ``imaging.loop`` off). With the loop on the errors are always the imaging selection's white
     tiles (the ideal formation's when it chose nothing), so that two runs compare tile for tile
     whatever each chose. ``scene_size``: the translation unit of the camera prior (the training
     cameras' extent). ``tracks``: SfM's tracks of these views and the views' cameras at the
@@ -135,7 +135,7 @@ def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], sett
         with torch.no_grad():
             own.log_gain.zero_()
     held_e = view_exposures(vs.cameras, exposure)  # these views' recorded exposures (None: all 1)
-    n = int(settings.camera_align_iterations)
+    n = int(settings.cameras.align_iterations)
     if n > 0:
         renderer = make_renderer(settings, mesh)
         v = torch.from_numpy(mesh.v_pos).to(torch.float32)
@@ -150,22 +150,22 @@ def align_views(mesh: Mesh, maps: dict, vs: ViewSet, cameras: list[Camera], sett
                                         camera_table=ali.table(idx, cameras), **lighting)
             if imaging is not None:
                 img = imaging.apply(img, idx, gains=None if own is None else own.gains(), exposure=held_e)
-            return objective.render_loss(img, vs.images, vs.weights, settings.tone_map, tone_scale)
+            return objective.render_loss(img, vs.images, vs.weights, settings.loss.tone_map, tone_scale)
 
         def priors() -> dict:
             return {**objective.camera_terms(ali, None, w),
                     **objective.imaging_terms(None if own is None else lambda: own.prior(im_settings.exposure_prior), w),
                     **objective.tracks_terms(track_term, ali, track_cameras, w)}
 
-        fitting.fit(groups, n, image_term, w, priors=priors, betas=settings.betas, final_loss=False)
+        fitting.fit(groups, n, image_term, w, priors=priors, betas=settings.optim.betas, final_loss=False)
     aligned = dataclasses.replace(vs, cameras=tuple(ali.cameras(idx, cameras)))
     maps_np = {k: x.detach().numpy().astype(np.float32) for k, x in maps.items()}
     sel = settings.selection_settings()
     if not loop_on:
-        tiles = heldout_error(mesh, maps_np, aligned, light, tone_scale, sel, spp=int(settings.select_spp),
+        tiles = heldout_error(mesh, maps_np, aligned, light, tone_scale, sel, spp=int(settings.select.select_spp),
                               seed=int(settings.seed))
     else:
-        gb = build_gbuffer(mesh, list(aligned.cameras), int(settings.select_spp), int(settings.seed))
+        gb = build_gbuffer(mesh, list(aligned.cameras), int(settings.select.select_spp), int(settings.seed))
         prob = ImagingProblem(gb, aligned, sel.tone_map, tone_scale, sel.tile, exposure=exposure)
         params = imaging.params if imaging is not None else ImagingParams(ImagingModel(()), len(idx), 1.0, tone_scale)
         tiles, _ = heldout_tiles_under(maps_np, model_from_settings(maps_np["specular"].shape[2]), params,
@@ -197,11 +197,11 @@ def select_refinement(runs: list, done: list, info: dict, cams: CameraSet, timer
         chosen = 1 if cmp["accepted"] else 0
         info["selection"] = {
             "criterion": f"keep the refined cameras when the held-out error (each run's held-out poses aligned "
-                         f"to its fixed model for {int(settings.camera_align_iterations)} steps"
+                         f"to its fixed model for {int(settings.cameras.align_iterations)} steps"
                          + (", under the loop's imaging terms with the views' own exposure gains"
                             if run_imaging_active else "") + ") is lower than the "
-                         f"control's (same run without refinement) by > {settings.select_z} x SE of the paired "
-                         f"per-tile difference and by > {100 * settings.select_min_gain:.3g} %",
+                         f"control's (same run without refinement) by > {settings.select.select_z} x SE of the paired "
+                         f"per-tile difference and by > {100 * settings.select.select_min_gain:.3g} %",
             "control_heldout_error": float(np.nanmean(ctrl["tiles"])),
             "refined_heldout_error": float(np.nanmean(cand["tiles"])),
             **cmp,
@@ -216,7 +216,7 @@ def select_refinement(runs: list, done: list, info: dict, cams: CameraSet, timer
         info["refined"] = run.cameras is not None
         info["corrections"] = fit.ref.corrections(object_size=run.bbox_scale,
                                                   cameras=[cams.by_stem()[s] for s in run.views.stems])
-        info["intrinsics_refined"] = bool(settings.camera_intrinsics)
+        info["intrinsics_refined"] = bool(settings.cameras.intrinsics)
     held = aligned.get(id(run))
     if held is not None:
         info["heldout_alignment"] = held["corrections"]

@@ -35,7 +35,7 @@ def split_holdout(views: Views, settings: OptimizeSettings, force: bool = False)
     n = len(views)
     if not (settings.holds_out or force):
         return views, None, None
-    k = int(settings.holdout_every)
+    k = int(settings.select.holdout_every)
     held = list(range(k // 2, n, k))
     if len(held) < 2 and n >= 2:
         held = sorted({n // 4, (3 * n) // 4})

@@ -131,10 +131,10 @@ def select_imaging(mesh, material_fit: Fit, covered: np.ndarray, train: ViewSet,
 
 # ---------------------------------------------------------------------- the optimize stage's entries
 def candidate_terms(settings, ldr: bool | None) -> tuple[tuple, bool]:
-    """The terms of ``imaging_terms`` to try and whether the tone curve is among them
-    (``tone_curve``: fit, identity, or auto = only for JPEG/PNG photos)."""
-    tone = settings.tone_curve == "fit" or (settings.tone_curve == "auto" and bool(ldr))
-    return tuple(t for t in settings.imaging_terms if tone or t != "tone"), tone
+    """The terms of ``imaging.terms`` to try and whether the tone curve is among them
+    (``imaging.tone_curve``: fit, identity, or auto = only for JPEG/PNG photos)."""
+    tone = settings.imaging.tone_curve == "fit" or (settings.imaging.tone_curve == "auto" and bool(ldr))
+    return tuple(t for t in settings.imaging.terms if tone or t != "tone"), tone
 
 
 def run_imaging_selection(settings, mesh, maps: dict, material: MaterialModel, covered: np.ndarray, views, heldout,
@@ -146,29 +146,29 @@ def run_imaging_selection(settings, mesh, maps: dict, material: MaterialModel, c
     goes with (refined by the optimizer, issue 17); default ``views.at(size)``/``heldout.at(size)``."""
     ldr = capture_is_ldr(images)
     terms, tone = candidate_terms(settings, ldr)
-    size = int(settings.select_image_size)
+    size = int(settings.select.select_image_size)
     log.info("imaging model selection on %d held-out views: %s", len(heldout), ", ".join(terms))
     train_set = train_set if train_set is not None else views.at(size)
     heldout_set = heldout_set if heldout_set is not None else heldout.at(size)
     fit, ev = select_imaging(mesh, Fit(material, maps, float("nan")), covered, train_set, heldout_set,
                              light, tone_scale, settings.imaging_selection_settings(), candidates=terms,
-                             offset_given=settings.flash_offset, spp=int(settings.select_spp),
+                             offset_given=settings.imaging.flash_offset, spp=int(settings.select.select_spp),
                              seed=int(settings.seed) + 17, exposure=recorded_exposures(images) if tone else None)
-    ev["tone_curve"] = {"setting": settings.tone_curve, "photos_are_ldr": ldr, "tried": tone}
+    ev["tone_curve"] = {"setting": settings.imaging.tone_curve, "photos_are_ldr": ldr, "tried": tone}
     return fit.material.maps, material, ev
 
 
 def select_for_loop(settings, mesh, maps: dict, material: MaterialModel, covered: np.ndarray, train_set: ViewSet,
                     heldout_set: ViewSet, light: float, tone_scale: float, ldr: bool | None,
                     exposure: dict | None = None):
-    """The imaging selection on the coarse model (``imaging_loop: select``): (ImagingParams of
+    """The imaging selection on the coarse model (``imaging.loop: select``): (ImagingParams of
     the chosen terms, or None when the ideal formation is kept and no flash offset is given;
     the evidence). ``exposure``: :func:`recon.optimize.views.recorded_exposures` of the photos (where the tone curve acts)."""
     terms, tone = candidate_terms(settings, ldr)
     fit, ev = select_imaging(mesh, Fit(material, maps, float("nan")), covered, train_set, heldout_set, light,
                              tone_scale, settings.imaging_selection_settings(), candidates=terms,
-                             offset_given=settings.flash_offset, spp=int(settings.select_spp),
+                             offset_given=settings.imaging.flash_offset, spp=int(settings.select.select_spp),
                              seed=int(settings.seed) + 23, exposure=exposure if tone else None)
-    ev["tone_curve"] = {"setting": settings.tone_curve, "photos_are_ldr": ldr, "tried": tone}
-    keep = bool(fit.model.terms) or settings.flash_offset is not None
+    ev["tone_curve"] = {"setting": settings.imaging.tone_curve, "photos_are_ldr": ldr, "tried": tone}
+    keep = bool(fit.model.terms) or settings.imaging.flash_offset is not None
     return (fit.params if keep else None), ev

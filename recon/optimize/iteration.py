@@ -68,11 +68,11 @@ class Stage:
 
 
 def map_params(settings: OptimizeSettings) -> dict:
-    kind = settings.parameterization
+    kind = settings.material.parameterization
     return {
         "diffuse": albedo_param(kind),
         "specular": albedo_param(kind),
-        "roughness": roughness_param(settings.r_min, kind),
+        "roughness": roughness_param(settings.material.r_min, kind),
     }
 
 
@@ -83,8 +83,8 @@ def map_values(settings: OptimizeSettings, maps: dict) -> dict:
 
 
 def make_renderer(settings: OptimizeSettings, mesh: Mesh):
-    rs = RenderSettings(spp=int(settings.spp), boundary=settings.boundary, variant=settings.variant,
-                        r_min=settings.r_min)
+    rs = RenderSettings(spp=int(settings.render.spp), boundary=settings.render.boundary, variant=settings.variant,
+                        r_min=settings.material.r_min)
     return CollocatedRenderer(mesh.t_pos_idx, mesh.v_tex, mesh.t_tex_idx, rs)
 
 
@@ -94,7 +94,7 @@ def build_stage(run: Run, index, stage_settings, h, mesh, v_init, covered, map_v
     settings, bbox_scale = run.settings, run.bbox_scale
     topo = reg.MeshTopology.from_faces(mesh.t_pos_idx, len(mesh.v_pos))
     ls = None
-    if settings.optimizer == "largesteps":
+    if settings.optim.optimizer == "largesteps":
         ls = LargeSteps(mesh.t_pos_idx, len(mesh.v_pos), schedule.stage_lambda(settings, stage_settings, h / bbox_scale))
         geom0 = torch.from_numpy(ls.M @ mesh.v_pos)
     else:
@@ -106,23 +106,23 @@ def build_stage(run: Run, index, stage_settings, h, mesh, v_init, covered, map_v
         if map_raw is not None:
             maps[k] = TexturePyramid.from_state(map_raw[k])
         else:
-            maps[k] = TexturePyramid(p[k].raw(map_values[k]), settings.texture_levels)
+            maps[k] = TexturePyramid(p[k].raw(map_values[k]), settings.material.texture_levels)
     # start rates; the stage's lr_scale and decay are set before every step (run_iteration)
     lr_g, lr_t = schedule.learning_rates(settings, bbox_scale)
     # Adam's eps in the units of the gradients, which scale as 1 / bbox_scale: the steps are the
     # same in any scene units (an absolute 1e-8 damps them for a scene in millimetres)
     eps_g = 1e-8 / bbox_scale
-    if ls is not None and settings.largesteps_uniform_adam:
-        opt_geom = AdamUniform([geom], lr=lr_g, betas=settings.betas, eps=eps_g)
+    if ls is not None and settings.optim.largesteps_uniform_adam:
+        opt_geom = AdamUniform([geom], lr=lr_g, betas=settings.optim.betas, eps=eps_g)
     else:
-        opt_geom = torch.optim.Adam([geom], lr=lr_g, betas=settings.betas, eps=eps_g)
-    opt_tex = torch.optim.Adam([t for k in MAP_NAMES for t in maps[k].parameters()], lr=lr_t, betas=settings.betas)
+        opt_geom = torch.optim.Adam([geom], lr=lr_g, betas=settings.optim.betas, eps=eps_g)
+    opt_tex = torch.optim.Adam([t for k in MAP_NAMES for t in maps[k].parameters()], lr=lr_t, betas=settings.optim.betas)
     if opt_state is not None:
         opt_geom.load_state_dict(opt_state["geom"])
         opt_tex.load_state_dict(opt_state["tex"])
     guard = (
-        SurfaceGuard(mesh.t_pos_idx, topo, v_init, max_halvings=settings.guard_max_halvings)
-        if settings.guard else None
+        SurfaceGuard(mesh.t_pos_idx, topo, v_init, max_halvings=settings.optim.guard_max_halvings)
+        if settings.optim.guard else None
     )
     targets = run.views.at(settings.stage_image_size(stage_settings))
     renderer = make_renderer(settings, mesh)
@@ -170,12 +170,12 @@ def _forward_backward(st: Stage, it: int, idx: np.ndarray, run: Run, times: dict
     if run.imaging is not None:
         img = run.imaging.apply(img, idx)
     t2 = time.perf_counter()
-    terms = {"render": objective.render_loss(img, st.targets.images[idx], st.targets.weights[idx], settings.tone_map,
+    terms = {"render": objective.render_loss(img, st.targets.images[idx], st.targets.weights[idx], settings.loss.tone_map,
                                              run.tone_scale),
-             **objective.geometry_terms(v, st.topo, st.h, settings.laplacian, weights)}
+             **objective.geometry_terms(v, st.topo, st.h, settings.loss.laplacian, weights)}
     terms.update(objective.material_terms(
         vals["specular"], vals["diffuse"], vals["roughness"], torch.from_numpy(st.covered), weights,
-        settings.bilateral_sigma_space, settings.bilateral_sigma_color, settings.bilateral_radius))
+        settings.loss.bilateral_sigma_space, settings.loss.bilateral_sigma_color, settings.loss.bilateral_radius))
     terms.update(objective.camera_terms(ref, idx, weights))
     terms.update(objective.imaging_terms(run.imaging.prior if run.imaging is not None and run.imaging.active
                                          else None, weights))
@@ -233,7 +233,7 @@ def run_iteration(st: Stage, it: int, run: Run, timer: Timer) -> dict:
     redone, so the accepted trajectory is exactly that of checking synchronously."""
     settings = run.settings
     n = len(st.targets)
-    B = min(int(settings.views_per_iteration), n)
+    B = min(int(settings.schedule.views_per_iteration), n)
     idx = np.sort(iteration_views(settings.seed, st.index, it, n, B))
     times = {p: 0.0 for p in PHASES}
     total, terms = _forward_backward(st, it, idx, run, times)

@@ -93,7 +93,7 @@ def optimize_capture(
     progress : show a tqdm bar (loss and ETA).
     callback : called after every iteration with its log record (dict).
     cameras_source : where the cameras came from, "sfm" or "given" (None: the ``source`` of
-        ``poses.json`` beside ``cameras_json``, else "given"); decides ``refine_cameras``.
+        ``poses.json`` beside ``cameras_json``, else "given"); decides ``cameras.refine``.
     plane_json : the support plane (``plane.json`` beside the masks; absent when none was found):
         no vertex goes below it (:func:`recon.optimize.iteration._keep_above_plane`).
 
@@ -134,7 +134,7 @@ def optimize_capture(
     summary.update(material_model=model.to_dict(), material_model_label=model.label(), **selections,
                    holdout=holdout_info, camera_refinement=camera_info,
                    imaging_loop=None if run.imaging is None else {
-                       "setting": settings.imaging_loop, "stage": int(settings.imaging_loop_stage),
+                       "setting": settings.imaging.loop, "stage": int(settings.imaging.loop_stage),
                        **run.imaging.report()})
     save(run, prog, st, int(run.stages[-1].iterations), done=True)
     _write_outputs(out_dir, final, final_maps, prog.records, summary,
@@ -169,8 +169,8 @@ def _base_run(inputs: _Inputs, cams: CameraSet, settings: OptimizeSettings, sour
     if mode != "off" and len(views) < 3:
         mode, why = "off", f"only {len(views)} training views (camera refinement needs at least 3)"
     if mode == "select" and heldout is None:
-        mode, why = "off", "no held-out views to decide on (refine_cameras: select needs at least 6 views)"
-    if mode != "off" or settings.refine_cameras != "off":
+        mode, why = "off", "no held-out views to decide on (cameras.refine: select needs at least 6 views)"
+    if mode != "off" or settings.cameras.refine != "off":
         log.info("camera refinement: %s (%s)", mode, why)
     init = read_mesh(inputs.init_mesh_obj)
     lo, hi = init.bbox()
@@ -197,25 +197,25 @@ def _base_run(inputs: _Inputs, cams: CameraSet, settings: OptimizeSettings, sour
     base = Run(settings, tuple(stages), views, heldout, bbox_scale, weights, tone_scale, light, ckpt_dir, fp,
                plane=plane, light_scale=light_scale, area_init=float(init.area()),
                exposure=recorded_exposures(inputs.images))
-    if settings.imaging_loop != "off":
+    if settings.imaging.loop != "off":
         if heldout is None:
-            log.warning("imaging_loop: %s needs held-out views (at least 6 views); the loop renders the ideal "
-                        "formation", settings.imaging_loop)
+            log.warning("imaging.loop: %s needs held-out views (at least 6 views); the loop renders the ideal "
+                        "formation", settings.imaging.loop)
         else:
             base = dataclasses.replace(base, ldr=capture_is_ldr(inputs.images))
     # linear photos (RAW, EXR) carry their exposure: the cameras need not wait for the imaging terms
-    camera_start = settings.camera_start(len(stages), settings.imaging_loop != "off" and heldout is not None
+    camera_start = settings.camera_start(len(stages), settings.imaging.loop != "off" and heldout is not None
                                          and base.ldr is True)
     if mode != "off":
-        log.info("camera refinement from stage %d (camera_first_stage: %s)", camera_start, settings.camera_first_stage)
-    camera_info = {"requested": settings.refine_cameras, "mode": mode, "reason": why, "source": source,
+        log.info("camera refinement from stage %d (cameras.first_stage: %s)", camera_start, settings.cameras.first_stage)
+    camera_info = {"requested": settings.cameras.refine, "mode": mode, "reason": why, "source": source,
                    "refined": False, "first_stage": camera_start if mode != "off" else None}
     return base, init, camera_info, holdout_info
 
 
 def _runs(base: Run, mode: str, camera_start: int | None) -> list[Run]:
-    """The runs to make: the control (refine_cameras "off" or "select") and the run refining the
-    cameras ("on" or "select"), each with its own imaging terms for the loop (``imaging_loop``)."""
+    """The runs to make: the control (cameras.refine "off" or "select") and the run refining the
+    cameras ("on" or "select"), each with its own imaging terms for the loop (``imaging.loop``)."""
     settings, views, heldout = base.settings, base.views, base.heldout
     runs = []
     if mode in ("off", "select"):
@@ -225,17 +225,17 @@ def _runs(base: Run, mode: str, camera_start: int | None) -> list[Run]:
         runs.append(dataclasses.replace(base, ckpt_dir=base.ckpt_dir / "cameras" if mode == "select" else base.ckpt_dir,
                                         fingerprint=base.fingerprint + "+cameras",
                                         cameras=CameraFit(views, settings, camera_start)))
-    if settings.imaging_loop != "off" and heldout is not None:
+    if settings.imaging.loop != "off" and heldout is not None:
         # one per run; when the cameras are held until the selection has run, the runs are the
         # same up to there and the refined run takes the control's choice: the held-out test then
         # compares cameras, not two draws of the imaging selection
         prior = ImagingSettings().exposure_prior
         e = view_exposures(views.cameras, base.exposure)  # the training views' (None: all 1)
         e = None if e is None else e.numpy()
-        control = LoopImaging(settings.imaging_loop_lr, prior, exposure=e)
-        shared = control if mode == "select" and camera_start > int(settings.imaging_loop_stage) else None
+        control = LoopImaging(settings.imaging.loop_lr, prior, exposure=e)
+        shared = control if mode == "select" and camera_start > int(settings.imaging.loop_stage) else None
         runs = [dataclasses.replace(r, imaging=control if r.cameras is None else
-                                    LoopImaging(settings.imaging_loop_lr, prior, shared_from=shared, exposure=e))
+                                    LoopImaging(settings.imaging.loop_lr, prior, shared_from=shared, exposure=e))
                 for r in runs]
     return runs
 
@@ -260,12 +260,12 @@ def _select_models(run: Run, st: Stage, final: Mesh, held_cams: dict | None, ima
     light, tone_scale = run.light, run.tone_scale
     with torch.no_grad():
         final_maps = {k: v.numpy().astype(np.float32) for k, v in map_values(settings, st.maps).items()}
-    model = model_from_settings(settings.specular_channels)
+    model = model_from_settings(settings.material.specular_channels)
     selection = None
     train_vs = held_vs = None  # the views at the selections' size with the final model's cameras
     loop_imaging = run.imaging is not None and run.imaging.active
-    if heldout is not None and (settings.select_material or settings.select_imaging or loop_imaging):
-        size = int(settings.select_image_size)
+    if heldout is not None and (settings.select.select_material or settings.imaging.select_imaging or loop_imaging):
+        size = int(settings.select.select_image_size)
         train_vs, held_vs = views.at(size), heldout.at(size)
         if run.cameras is not None:
             train_vs = dataclasses.replace(
@@ -273,37 +273,37 @@ def _select_models(run: Run, st: Stage, final: Mesh, held_cams: dict | None, ima
         if held_cams is not None:
             held_vs = held_cams["viewset"]
     scorer = None  # the material selection's, when it fits the candidates under the loop's imaging terms
-    if settings.select_material and heldout is not None:
+    if settings.select.select_material and heldout is not None:
         t0 = time.perf_counter()
         s_mat = settings.selection_settings()
         # under the loop's imaging terms the candidates' maps are fitted under them: the chosen
         # fit's maps are then those the asset carries (no refit after)
-        if loop_imaging and settings.select_material_under_imaging:
+        if loop_imaging and settings.select.select_material_under_imaging:
             scorer = material_scorer_under(run.imaging.params, final, st.covered, train_vs, held_vs, light,
-                                           tone_scale, s_mat, spp=int(settings.select_spp),
+                                           tone_scale, s_mat, spp=int(settings.select.select_spp),
                                            seed=int(settings.seed) + 29, exposure=run.exposure)
         log.info("material model selection on %d held-out views%s", len(heldout),
                  "" if scorer is None else " under the loop's imaging terms")
         fit, selection = select_material(
             final, final_maps, st.covered, train_vs, held_vs, light, tone_scale,
-            s_mat, spp=int(settings.select_spp), seed=int(settings.seed),
+            s_mat, spp=int(settings.select.select_spp), seed=int(settings.seed),
             progress=lambda m, f: log.info("material: fitted %s: held-out error %.5f", m.label(), f.heldout),
             scorer=scorer)
         final_maps, model = fit.maps, fit.model
         selection["under_imaging"] = scorer is not None
         timer.add("material", time.perf_counter() - t0)
         log.info("material model: %s", model.label())
-    if loop_imaging and not settings.select_imaging and scorer is None:
+    if loop_imaging and not settings.imaging.select_imaging and scorer is None:
         t0 = time.perf_counter()
         refit = refit_under(run.imaging.params, model, final, final_maps, st.covered, train_vs, light, tone_scale,
-                            settings.imaging_selection_settings(), spp=int(settings.select_spp), seed=int(settings.seed) + 29,
+                            settings.imaging_selection_settings(), spp=int(settings.select.select_spp), seed=int(settings.seed) + 29,
                             exposure=run.exposure)
         final_maps = refit.material.maps
         timer.add("material", time.perf_counter() - t0)
         log.info("maps refitted under the loop's imaging terms (%s): %.1f s", ", ".join(run.imaging.params.model.terms)
                  or "flash offset given", time.perf_counter() - t0)
     imaging = None
-    if settings.select_imaging and heldout is not None:
+    if settings.imaging.select_imaging and heldout is not None:
         t0 = time.perf_counter()
         final_maps, model, imaging = run_imaging_selection(
             settings, final, final_maps, model, st.covered, views, heldout, light, tone_scale, images,
@@ -343,11 +343,11 @@ def cameras_source_of(cameras_json: str | os.PathLike) -> str | None:
 def _light_scale(settings: OptimizeSettings, cams: CameraSet, views: Views, init: Mesh,
                  cameras_json) -> LightScale:
     """The flash's I_e: the one ``cameras.json`` states, else estimated from the training photos
-    on the initial mesh (``light_scale``; :mod:`recon.optimize.radiometry`)."""
-    if settings.light_scale == "given" and not cams.light_known:
-        raise OptimizeError(f"{cameras_json}: states no light.intensity, and light_scale is 'given'; give "
-                            "light_intensity in capture.yaml, or set optimize.light_scale: auto to estimate it")
-    if cams.light_known and settings.light_scale != "estimate":
+    on the initial mesh (``light.scale``; :mod:`recon.optimize.radiometry`)."""
+    if settings.light.scale == "given" and not cams.light_known:
+        raise OptimizeError(f"{cameras_json}: states no light.intensity, and light.scale is 'given'; give "
+                            "light_intensity in capture.yaml, or set optimize: {light: {scale: auto}} to estimate it")
+    if cams.light_known and settings.light.scale != "estimate":
         log.info("flash intensity I_e = %.6g, given in %s: the albedo is absolute", cams.light_intensity, cameras_json)
         return LightScale(float(cams.light_intensity), "given")
     vs = views.at(ESTIMATE_SIZE)

@@ -1,4 +1,4 @@
-"""The imaging terms inside the coarse-to-fine loop (``imaging_loop: select``): the terms the
+"""The imaging terms inside the coarse-to-fine loop (``imaging.loop: select``): the terms the
 imaging selection chose on the coarse model (:func:`recon.optimize.imaging_select.select_for_loop`)
 applied to the loop's rendered images and refined with the shape. The scene side (flash offset,
 ambient light) goes to the renderer, the camera side (exposure gains, falloff, tone curve) is
@@ -15,7 +15,7 @@ from recon.optimize.formation import ImagingModel, ImagingParams, camera_respons
 
 class LoopImaging:
     """The imaging terms chosen on the coarse model, inside the coarse-to-fine loop
-    (``imaging_loop: select``): the flash offset and the ambient light go to the renderer as
+    (``imaging.loop: select``): the flash offset and the ambient light go to the renderer as
     fixed values (:meth:`lighting`), the exposure gains, falloff and tone curve act on the
     rendered images (:meth:`apply`) and are refined with the shape (rate ``lr``; 0: fixed).
 

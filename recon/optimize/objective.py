@@ -69,17 +69,19 @@ def render_loss(render: torch.Tensor, target: torch.Tensor, weights: torch.Tenso
 
 # ---- Weights: the one place where the ablation switches act ----
 def weights(settings) -> dict[str, float]:
-    """Each term's weight after the ablation switches (``use_laplacian``, ``use_normal_edge``,
-    ``use_material_priors``) of :class:`recon.optimize.settings.OptimizeSettings`."""
+    """Each term's weight after the ablation switches (``loss.use_laplacian``,
+    ``loss.use_normal_edge``, ``loss.use_material_priors``) of
+    :class:`recon.optimize.settings.OptimizeSettings`."""
+    loss = settings.loss
     return {
-        "render": settings.w_render,
-        "laplacian": settings.w_laplacian if settings.use_laplacian else 0.0,
-        "edge": settings.w_edge if settings.use_normal_edge else 0.0,
-        "normal": settings.w_normal if settings.use_normal_edge else 0.0,
-        "specular": settings.w_specular if settings.use_material_priors else 0.0,
-        "roughness": settings.w_roughness if settings.use_material_priors else 0.0,
-        "camera": settings.w_camera,
-        "imaging": settings.w_imaging,
+        "render": loss.w_render,
+        "laplacian": loss.w_laplacian if loss.use_laplacian else 0.0,
+        "edge": loss.w_edge if loss.use_normal_edge else 0.0,
+        "normal": loss.w_normal if loss.use_normal_edge else 0.0,
+        "specular": loss.w_specular if loss.use_material_priors else 0.0,
+        "roughness": loss.w_roughness if loss.use_material_priors else 0.0,
+        "camera": loss.w_camera,
+        "imaging": loss.w_imaging,
     }
 
 

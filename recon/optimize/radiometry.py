@@ -28,7 +28,7 @@ the final diffuse map sits at 1 (a sign that the gauge was too low).
 
 With ``light.intensity`` in ``cameras.json`` or ``light_intensity`` in ``capture.yaml`` (a
 calibrated flash, a synthetic capture's truth) the given I_e is used as is and the albedo is
-absolute; ``light_scale: estimate`` estimates it anyway (to measure the estimate).
+absolute; ``light.scale: estimate`` estimates it anyway (to measure the estimate).
 
 Collapse: :func:`mask_coverage` projects the current mesh into views and measures how much of
 the masks it covers and how much of it falls outside them; :func:`check_not_collapsed` turns a

@@ -4,7 +4,7 @@ checkpoints (sec. 3.2-3.4).
 :func:`execute` resumes a run from its checkpoint when that matches, else starts it, and runs
 its stages (:func:`recon.optimize.iteration.run_iteration` per iteration). Between stages:
 remesh, re-unwrap, bake the maps onto the new atlas (:mod:`recon.optimize.remesh`), check that
-the surface did not collapse, select the loop's imaging terms (``imaging_loop: select``) and test
+the surface did not collapse, select the loop's imaging terms (``imaging.loop: select``) and test
 for a plateau (:func:`recon.optimize.schedule.plateau`).
 
 Timings are kept per phase, as in the paper's supplement: ``render`` (forward rendering),
@@ -66,12 +66,12 @@ class Run:
     bbox_scale: float  # longest side of the initial mesh's bounding box
     weights: dict  # objective.weights(settings)
     tone_scale: float
-    light: float  # the flash's I_e (given, or estimated from the photos: light_scale)
+    light: float  # the flash's I_e (given, or estimated from the photos: light.scale)
     ckpt_dir: Path
     fingerprint: str
     cameras: "CameraFit | None" = None  # the camera refinement (None: the cameras are fixed)
     plane: SupportPlane | None = None  # the table the object stands on: no vertex goes below it
-    imaging: LoopImaging | None = None  # imaging terms in the loop (imaging_loop: select)
+    imaging: LoopImaging | None = None  # imaging terms in the loop (imaging.loop: select)
     ldr: bool | None = None  # the photos were JPEG/PNG (the tone curve is tried)
     light_scale: LightScale | None = None  # where ``light`` came from; the initial diffuse albedo
     area_init: float = 0.0  # the initial mesh's area (the collapse check)
@@ -184,7 +184,7 @@ def _run_stages(run: Run, prog: Progress, init: Mesh, state: dict | None, start_
             if bar is not None:
                 bar.set_postfix(stage=si, loss=f"{rec['loss']:.4g}", refresh=False)
                 bar.update(1)
-            if (it + 1) % int(settings.checkpoint_every) == 0 or it + 1 == int(stage.iterations):
+            if (it + 1) % int(settings.schedule.checkpoint_every) == 0 or it + 1 == int(stage.iterations):
                 t0 = time.perf_counter()
                 resolve(st)  # checkpoints hold checked positions only
                 timer.add("geometry", time.perf_counter() - t0)
@@ -197,12 +197,12 @@ def _run_stages(run: Run, prog: Progress, init: Mesh, state: dict | None, start_
         timer.add("geometry", time.perf_counter() - t0)
         with torch.no_grad():
             prev_maps = {k: v.numpy().astype(np.float32) for k, v in map_values(settings, st.maps).items()}
-        if run.imaging is not None and run.imaging.evidence is None and si >= int(settings.imaging_loop_stage) \
+        if run.imaging is not None and run.imaging.evidence is None and si >= int(settings.imaging.loop_stage) \
                 and si + 1 < len(stages):
             t0 = time.perf_counter()
             _select_loop_imaging(run, prev_mesh, prev_maps, st.covered, si)
             timer.add("material", time.perf_counter() - t0)
-        if settings.stop_on_plateau and run.heldout is not None:
+        if settings.select.stop_on_plateau and run.heldout is not None:
             t0 = time.perf_counter()
             stop = schedule.plateau(run, si, prev_mesh, prev_maps, stage_infos)
             timer.add("material", time.perf_counter() - t0)
@@ -230,9 +230,9 @@ def _initial_stage_mesh(init: Mesh, settings: OptimizeSettings, stage: StageSett
     mesh = unwrap(v, f, T)
     face, _, _ = rasterize_atlas(mesh, T)
     maps = {
-        "diffuse": constant_map(T, 3, settings.init_diffuse if init_diffuse is None else init_diffuse),
-        "specular": constant_map(T, settings.specular_channels, settings.init_specular),
-        "roughness": constant_map(T, 1, settings.init_roughness),
+        "diffuse": constant_map(T, 3, settings.material.init_diffuse if init_diffuse is None else init_diffuse),
+        "specular": constant_map(T, settings.material.specular_channels, settings.material.init_specular),
+        "roughness": constant_map(T, 1, settings.material.init_roughness),
     }
     return mesh, maps, face >= 0
 
@@ -256,17 +256,17 @@ def _check_collapse(run: Run, mesh: Mesh, st: Stage, si: int) -> dict:
              si, 100 * cov["covered_mean"], 100 * cov["covered_min"], 100 * cov["outside_mean"])
     try:
         check_not_collapsed(f"optimize stage {si}", cov, float(mesh.area()), run.area_init, run.light_scale,
-                            run.settings.collapse_min_covered, run.settings.collapse_min_area)
+                            run.settings.light.collapse_min_covered, run.settings.light.collapse_min_area)
     except CollapseError as e:
         raise OptimizeError(str(e)) from e
     return cov
 
 
 def _select_loop_imaging(run: Run, mesh: Mesh, maps: dict, covered: np.ndarray, si: int) -> None:
-    """``imaging_loop: select``: the imaging selection on stage ``si``'s model; the later stages
+    """``imaging.loop: select``: the imaging selection on stage ``si``'s model; the later stages
     optimize under the chosen terms (:class:`recon.optimize.loop_imaging.LoopImaging`)."""
     settings = run.settings
-    size = int(settings.select_image_size)
+    size = int(settings.select.select_image_size)
     train_vs, held_vs = run.views.at(size), run.heldout.at(size)
     if run.cameras is not None:
         with torch.no_grad():
@@ -277,7 +277,7 @@ def _select_loop_imaging(run: Run, mesh: Mesh, maps: dict, covered: np.ndarray, 
                  ", ".join(run.imaging.evidence["chosen"]) or "none")
         return
     log.info("imaging terms for the loop: selection on stage %d's model (%d held-out views)", si, len(held_vs))
-    params, ev = select_for_loop(settings, mesh, maps, model_from_settings(settings.specular_channels), covered,
+    params, ev = select_for_loop(settings, mesh, maps, model_from_settings(settings.material.specular_channels), covered,
                                  train_vs, held_vs, run.light, run.tone_scale, run.ldr, exposure=run.exposure)
     ev["after_stage"] = si
     run.imaging.adopt(params, ev)

@@ -31,15 +31,15 @@ log = logging.getLogger(__name__)
 def learning_rates(settings: OptimizeSettings, bbox_scale: float, factor: float = 1.0) -> tuple[float, float]:
     """Adam's (geometry, texture) rates times ``factor`` (the stage's schedule): ``lr_geometry``
     is a fraction of the bounding box (longest side ``bbox_scale``) per step."""
-    return settings.lr_geometry * bbox_scale * factor, settings.lr_texture * factor
+    return settings.optim.lr_geometry * bbox_scale * factor, settings.optim.lr_texture * factor
 
 
 def stage_lambda(settings: OptimizeSettings, stage: StageSettings, edge_length: float) -> float:
     """The large-steps lambda of a stage whose edges are ``edge_length`` (fraction of the bbox):
     ``largesteps_lambda * lambda_scale``, times ``(largesteps_reference_edge / edge_length)^2`` when
     the edges are shorter than the reference (the smoothing length on the surface stays fixed)."""
-    lam = float(settings.largesteps_lambda) * float(stage.lambda_scale)
-    ref = float(settings.largesteps_reference_edge)
+    lam = float(settings.optim.largesteps_lambda) * float(stage.lambda_scale)
+    ref = float(settings.optim.largesteps_reference_edge)
     if ref > 0 and edge_length < ref:
         lam *= (ref / edge_length) ** 2
     return lam
@@ -51,11 +51,11 @@ def stage_edge_length(stage: StageSettings, settings: OptimizeSettings, views: V
     ``edge_length``, raised to ``min_edge_pixels`` pixel footprints at the stage's image size."""
     longest = max(views.cameras[0].width, views.cameras[0].height)
     size = min(settings.stage_image_size(stage), longest)  # the photos are never upsampled
-    h_min = float(settings.min_edge_pixels) * footprint_full * longest / size
+    h_min = float(settings.schedule.min_edge_pixels) * footprint_full * longest / size
     h = float(stage.edge_length) * bbox_scale
     if h < h_min:
         log.info("stage edge length %.4g is below %.3g pixel footprints at %d px: using %.4g",
-                 h, settings.min_edge_pixels, size, h_min)
+                 h, settings.schedule.min_edge_pixels, size, h_min)
     return max(h, h_min), h, h_min
 
 
@@ -66,8 +66,8 @@ def plateau(run: Run, si, mesh, maps, stage_infos) -> bool:
     info = stage_infos[si]
     if "heldout_tiles" not in info:
         s = settings.selection_settings()
-        tiles = heldout_error(mesh, maps, run.heldout.at(int(settings.select_image_size)), run.light, run.tone_scale, s,
-                              spp=int(settings.select_spp), seed=int(settings.seed))
+        tiles = heldout_error(mesh, maps, run.heldout.at(int(settings.select.select_image_size)), run.light, run.tone_scale, s,
+                              spp=int(settings.select.select_spp), seed=int(settings.seed))
         info["heldout_tiles"] = [float(x) for x in tiles]
         info["heldout_error"] = float(np.nanmean(tiles))
         prev = stage_infos[si - 1] if si > 0 else None

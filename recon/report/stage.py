@@ -265,7 +265,7 @@ def make_report(
             "tone_curve", "seconds")}
     loop = summary.get("imaging_loop") if isinstance(summary.get("imaging_loop"), dict) else None
     loop_ev = loop.get("evidence") if loop is not None and isinstance(loop.get("evidence"), dict) else None
-    if loop_ev is not None:  # the imaging terms the shape was optimized under (imaging_loop: select)
+    if loop_ev is not None:  # the imaging terms the shape was optimized under (imaging.loop: select)
         metrics["imaging_loop"] = {
             "chosen": loop.get("chosen"), "after_stage": loop_ev.get("after_stage"),
             "values_after_loop": loop.get("values_after_loop"),

@@ -149,7 +149,8 @@ def test_heldout_alignment_renders_the_loop_imaging(drjit_single_thread):
     maps = {k: torch.tensor(m) for k, m in zip(("diffuse", "specular", "roughness"),
                                                textures(np.random.default_rng(3)), strict=True)}
     true = _ring(3)
-    settings = OptimizeSettings(spp=4, boundary="edge", camera_align_iterations=40, select_spp=4)
+    settings = OptimizeSettings(render={"spp": 4, "boundary": "edge"}, cameras={"align_iterations": 40},
+                                select={"select_spp": 4})
     r = CollocatedRenderer(f, t, ft, RenderSettings(spp=16, boundary="edge"))
     gains = torch.tensor([1.6, 1.0, 0.6])
     clean = r.render_torch(torch.tensor(v, dtype=torch.float32), maps["diffuse"], maps["specular"],

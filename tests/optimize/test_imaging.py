@@ -285,10 +285,11 @@ def test_optimize_stage_runs_the_imaging_selection(tmp_path):
 
     cap = synthetic.make_capture(tmp_path / "cap", n_views=8, size=32, spp=16, subdivisions=3)
     root = tmp_path / "cap"
-    s = OptimizeSettings(resolution=32, spp=1, views_per_iteration=2, checkpoint_every=2, w_edge=0.01,
-                         stages=(StageSettings(0.12, 32, 2),), select_imaging=True, holdout_every=4,
-                         select_iterations=4, select_image_size=32, select_spp=1,
-                         imaging_terms=("flash_offset", "exposure", "tone"), flash_offset=(0.01, 0.0, 0.0))
+    s = OptimizeSettings(render={"resolution": 32, "spp": 1}, schedule={"views_per_iteration": 2, "checkpoint_every": 2},
+                         loss={"w_edge": 0.01}, stages=(StageSettings(0.12, 32, 2),),
+                         select={"holdout_every": 4, "select_iterations": 4, "select_image_size": 32, "select_spp": 1},
+                         imaging={"select_imaging": True, "terms": ("flash_offset", "exposure", "tone"),
+                                  "flash_offset": (0.01, 0.0, 0.0)})
     assert s.holds_out
     out = optimize_capture(sorted((root / "images").glob("*.exr")), sorted((root / "masks").glob("*.png")), None,
                            root / "cameras.json", root / "init.obj", tmp_path / "out", s, progress=False)
@@ -307,13 +308,13 @@ def test_optimize_stage_runs_the_imaging_selection(tmp_path):
 def test_imaging_settings_validation():
     from recon.optimize.settings import OptimizeSettings
 
-    with pytest.raises(ValueError, match="imaging_terms"):
-        OptimizeSettings(imaging_terms=("vignette",))
+    with pytest.raises(ValueError, match="terms must be a subset"):
+        OptimizeSettings(imaging={"terms": ("vignette",)})
     with pytest.raises(ValueError, match="flash_offset"):
-        OptimizeSettings(flash_offset=(0.0, float("nan"), 0.0))
+        OptimizeSettings(imaging={"flash_offset": (0.0, float("nan"), 0.0)})
     with pytest.raises(ValueError, match="tone_curve"):
-        OptimizeSettings(tone_curve="srgb")
-    assert OptimizeSettings(flash_offset=[0.01, 0, 0]).to_dict()["flash_offset"] == [0.01, 0.0, 0.0]
+        OptimizeSettings(imaging={"tone_curve": "srgb"})
+    assert OptimizeSettings(imaging={"flash_offset": [0.01, 0, 0]}).to_dict()["flash_offset"] == [0.01, 0.0, 0.0]
 
 
 def _tone_error(p, params, scale: float = 1.0):
@@ -453,7 +454,7 @@ def test_loop_imaging_extremes_finite():
 
 
 def test_optimize_stage_imaging_loop(tmp_path, drjit_single_thread):
-    """imaging_loop: select on a capture whose views' exposure is off by 0.4 stops each: the
+    """imaging.loop: select on a capture whose views' exposure is off by 0.4 stops each: the
     selection after stage 0 keeps the exposure term, the next stage renders under it and refines
     the gains (on this 64 x 48, 20-iteration coarse model: RMS error 4.3 % after the selection,
     3.6 % after the loop, measured), summary.json records it. drjit on one thread: with its
@@ -469,10 +470,11 @@ def test_optimize_stage_imaging_loop(tmp_path, drjit_single_thread):
                                                        exposure_jitter=0.4))
     imgs = sorted((cap / "images").glob("*.exr"))
     masks = sorted((cap / "masks").glob("*.png"))
-    s = OptimizeSettings(resolution=64, spp=1, views_per_iteration=4, checkpoint_every=10, w_edge=0.01,
-                         stages=(StageSettings(0.1, 64, 20), StageSettings(0.08, 64, 20)), imaging_loop="select",
-                         imaging_terms=("exposure", "falloff"), holdout_every=4, select_iterations=80,
-                         select_image_size=64, select_spp=2, select_material=True)
+    s = OptimizeSettings(render={"resolution": 64, "spp": 1}, schedule={"views_per_iteration": 4, "checkpoint_every": 10},
+                         loss={"w_edge": 0.01}, stages=(StageSettings(0.1, 64, 20), StageSettings(0.08, 64, 20)),
+                         imaging={"loop": "select", "terms": ("exposure", "falloff")},
+                         select={"holdout_every": 4, "select_iterations": 80, "select_image_size": 64, "select_spp": 2,
+                                 "select_material": True})
     out = optimize_capture(imgs, masks, None, cap / "cameras.json", cap / "gt" / "mesh.obj", tmp_path / "out", s,
                            progress=False)
     # the material model compared under the loop's exposure term (not the ideal formation)

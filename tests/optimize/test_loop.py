@@ -13,14 +13,15 @@ from recon.io.mesh import read_mesh, read_obj
 from recon.optimize import OptimizeSettings, StageSettings, optimize_capture, settings_from_dict
 from recon.optimize.guard import self_intersecting_faces
 from recon.optimize.remesh import is_manifold
+from recon.sections import replace
 
 
 HERE = Path(__file__).parent
 REPO = HERE.parents[1]
 
 TINY = OptimizeSettings(
-    resolution=32, spp=1, views_per_iteration=2, checkpoint_every=2, w_edge=0.01,
-    stages=(StageSettings(0.12, 32, 4), StageSettings(0.09, 64, 4)),
+    render={"resolution": 32, "spp": 1}, schedule={"views_per_iteration": 2, "checkpoint_every": 2},
+    loss={"w_edge": 0.01}, stages=(StageSettings(0.12, 32, 4), StageSettings(0.09, 64, 4)),
 )
 
 
@@ -45,7 +46,7 @@ sys.path.insert(0, {here!r})
 import drjit as dr
 from recon.mi import load_variant
 load_variant(); dr.set_thread_count(1)
-from recon.optimize import optimize_capture, settings_from_dict
+from recon.optimize import optimize_capture, settings_from_record
 args = json.loads(sys.argv[1])
 count = 0
 def cb(rec):
@@ -54,7 +55,7 @@ def cb(rec):
     if count == args["kill_after"]:
         os.kill(os.getpid(), signal.SIGKILL)
 optimize_capture(args["images"], args["masks"], None, args["cameras"], args["init"], args["out"],
-                 settings_from_dict(args["settings"]), progress=False, callback=cb)
+                 settings_from_record(args["settings"]), progress=False, callback=cb)
 """
 
 
@@ -102,7 +103,7 @@ def test_outputs_resume_after_kill_and_match(capture, tmp_path, drjit_single_thr
     # outputs: the contract's maps and a clean mesh
     d = read_exr(a / "diffuse.exr")
     assert d.shape == (64, 64, 3) and read_exr(a / "roughness.exr").shape == (64, 64, 1)
-    assert np.all((d >= 0) & (d <= 1)) and np.all(read_exr(a / "roughness.exr") >= TINY.r_min - 1e-6)
+    assert np.all((d >= 0) & (d <= 1)) and np.all(read_exr(a / "roughness.exr") >= TINY.material.r_min - 1e-6)
     assert ma.has_uv and is_manifold(ma.v_pos, ma.t_pos_idx)
     assert not self_intersecting_faces(ma.v_pos, ma.t_pos_idx).any()
     assert ref["mesh"]["manifold"] and ref["mesh"]["self_intersecting_faces"] == 0
@@ -117,9 +118,9 @@ def test_outputs_resume_after_kill_and_match(capture, tmp_path, drjit_single_thr
 def test_other_settings_start_afresh(capture, tmp_path):
     root, _ = capture
     images, masks, sats, cams, init = _inputs(root)
-    short = OptimizeSettings(**{**TINY.__dict__, "stages": (StageSettings(0.12, 32, 2),)})
+    short = replace(TINY, stages=(StageSettings(0.12, 32, 2),))
     optimize_capture(images, masks, sats, cams, init, tmp_path, short, progress=False)
-    other = OptimizeSettings(**{**short.__dict__, "seed": 1})
+    other = replace(short, seed=1)
     s = optimize_capture(images, masks, sats, cams, init, tmp_path, other, progress=False)
     log = [json.loads(x) for x in (tmp_path / "log.jsonl").read_text().splitlines()]
     assert s["iterations"] == 2 and [r["iteration"] for r in log] == [0, 1]
@@ -136,23 +137,24 @@ def test_bad_inputs(capture, tmp_path):
 
 
 def test_settings_from_preset_dict():
-    s = settings_from_dict({"stages": [{"edge_length": 0.05, "texture_size": 64, "iterations": 3}], "optimizer": "adam"})
-    assert s.stages[0].texture_size == 64 and s.optimizer == "adam"
+    s = settings_from_dict({"stages": [{"edge_length": 0.05, "texture_size": 64, "iterations": 3}],
+                           "optim": {"optimizer": "adam"}})
+    assert s.stages[0].texture_size == 64 and s.optim.optimizer == "adam"
     from recon.config import ConfigError
 
     with pytest.raises(ConfigError, match="unknown OptimizeSettings key"):
         settings_from_dict({"iters": 3})
     with pytest.raises(ConfigError, match="optimizer must be one of"):
-        settings_from_dict({"optimizer": "sgd"})
+        settings_from_dict({"optim": {"optimizer": "sgd"}})
     with pytest.raises(ConfigError, match="edge_length"):
         settings_from_dict({"stages": [{"edge_length": 2.0}]})
-    abl = OptimizeSettings(coarse_to_fine=False, use_laplacian=False, use_material_priors=False)
+    abl = replace(OptimizeSettings(), coarse_to_fine=False, use_laplacian=False, use_material_priors=False)
     (only,) = abl.effective_stages()
     assert only.iterations == sum(st.iterations for st in abl.stages)
     assert only.edge_length == abl.stages[-1].edge_length
     w = abl.weights()
     assert w["laplacian"] == w["specular"] == w["roughness"] == 0 and w["edge"] > 0
-    assert OptimizeSettings(use_normal_edge=False).weights()["normal"] == 0
+    assert OptimizeSettings(loss={"use_normal_edge": False}).weights()["normal"] == 0
     st = StageSettings(iterations=11, lr_scale=0.5, lr_decay=0.1)
     assert st.lr_factor(0) == pytest.approx(0.5) and st.lr_factor(10) == pytest.approx(0.05)
     assert st.lr_factor(5) == pytest.approx(0.5 * 0.1**0.5)
@@ -161,7 +163,7 @@ def test_settings_from_preset_dict():
     with pytest.raises(ValueError, match="lambda_scale"):
         StageSettings(lambda_scale=0.0)
     with pytest.raises(ValueError, match="largesteps_reference_edge"):
-        OptimizeSettings(largesteps_reference_edge=-0.1)
+        OptimizeSettings(optim={"largesteps_reference_edge": -0.1})
 
 
 def test_from_dirs_pairs_views_masks_and_clipped_pixels(capture, tmp_path):
@@ -171,7 +173,7 @@ def test_from_dirs_pairs_views_masks_and_clipped_pixels(capture, tmp_path):
     root, cap = capture
     sat = root / "images" / "0000.sat.png"
     write_mask(sat, np.zeros((32, 32), bool))
-    short = OptimizeSettings(**{**TINY.__dict__, "stages": (StageSettings(0.12, 32, 1),)})
+    short = replace(TINY, stages=(StageSettings(0.12, 32, 1),))
     s = optimize_from_dirs(root / "images", root / "masks", root / "cameras.json", root / "init.obj", tmp_path, short,
                            progress=False)
     assert s["iterations"] == 1
@@ -200,8 +202,7 @@ def test_presets_build(preset):
 def test_options_and_ablations_run(capture, tmp_path, change):
     root, _ = capture
     images, masks, sats, cams, init = _inputs(root)
-    s = OptimizeSettings(**{**TINY.__dict__, "stages": (StageSettings(0.12, 32, 2), StageSettings(0.09, 32, 1)),
-                            **change})
+    s = replace(TINY, stages=(StageSettings(0.12, 32, 2), StageSettings(0.09, 32, 1)), **change)
     out = optimize_capture(images, masks, sats, cams, init, tmp_path, s, progress=False)
     n_stages = 1 if change.get("coarse_to_fine") is False else 2
     assert len(out["stages"]) == n_stages and out["iterations"] == 3
@@ -219,8 +220,7 @@ def test_guard_under_large_steps_is_deterministic_and_clean(capture, tmp_path, d
     renderer's float atomics in a fixed order)."""
     root, _ = capture
     images, masks, sats, cams, init = _inputs(root)
-    s = OptimizeSettings(**{**TINY.__dict__, "optimizer": "adam", "lr_geometry": 0.1, "checkpoint_every": 3,
-                            "stages": (StageSettings(0.12, 32, 6),)})
+    s = replace(TINY, optimizer="adam", lr_geometry=0.1, checkpoint_every=3, stages=(StageSettings(0.12, 32, 6),))
     runs = [optimize_capture(images, masks, sats, cams, init, tmp_path / str(k), s, progress=False) for k in (0, 1)]
     log = [json.loads(x) for x in (tmp_path / "0" / "log.jsonl").read_text().splitlines()]
     assert sum(r["guard_halvings"] > 0 for r in log) >= 3
@@ -229,10 +229,10 @@ def test_guard_under_large_steps_is_deterministic_and_clean(capture, tmp_path, d
 
 
 def test_stages_never_remesh_finer_than_the_pixels(capture, tmp_path):
-    """``min_edge_pixels``: a stage whose edge length is below that many pixel footprints (at its
+    """``schedule.min_edge_pixels``: a stage whose edge length is below that many pixel footprints (at its
     image size) is remeshed at the limit instead; 0 keeps the requested lengths. A stage's
     ``lambda_scale`` multiplies the large-steps lambda, and so does (reference / edge)^2 on stages
-    finer than ``largesteps_reference_edge``."""
+    finer than ``optim.largesteps_reference_edge``."""
     from recon.io.cameras import load_cameras
     from recon.optimize.views import pixel_footprint
 
@@ -240,12 +240,10 @@ def test_stages_never_remesh_finer_than_the_pixels(capture, tmp_path):
     images, masks, sats, cams, init = _inputs(root)
     stages = (StageSettings(0.12, 32, 1, image_size=16), StageSettings(0.06, 32, 1, lambda_scale=4.0))
     free = optimize_capture(images, masks, sats, cams, init, tmp_path / "free",
-                            OptimizeSettings(**{**TINY.__dict__, "stages": stages, "min_edge_pixels": 0.0,
-                                                "largesteps_reference_edge": 0.1}),
+                            replace(TINY, stages=stages, min_edge_pixels=0.0, largesteps_reference_edge=0.1),
                             progress=False)
     capped = optimize_capture(images, masks, sats, cams, init, tmp_path / "capped",
-                              OptimizeSettings(**{**TINY.__dict__, "stages": stages, "min_edge_pixels": 3.0,
-                                                  "largesteps_reference_edge": 0.0}),
+                              replace(TINY, stages=stages, min_edge_pixels=3.0, largesteps_reference_edge=0.0),
                               progress=False)
     m = read_mesh(init)
     lo, hi = m.bbox()
@@ -257,10 +255,10 @@ def test_stages_never_remesh_finer_than_the_pixels(capture, tmp_path):
         assert a["edge_length"] == pytest.approx(rel * scale)
         assert b["edge_length_min"] == pytest.approx(3.0 * full * 32 / size, rel=1e-6)
         assert b["edge_length"] == pytest.approx(max(rel * scale, b["edge_length_min"]))
-    assert [st["largesteps_lambda"] for st in capped["stages"]] == [TINY.largesteps_lambda, 4 * TINY.largesteps_lambda]
+    assert [st["largesteps_lambda"] for st in capped["stages"]] == [TINY.optim.largesteps_lambda, 4 * TINY.optim.largesteps_lambda]
     # the reference edge (0.1 of the bbox) leaves the 0.12 stage alone and scales the 0.06 one
     assert [st["largesteps_lambda"] for st in free["stages"]] == pytest.approx(
-        [TINY.largesteps_lambda, 4 * TINY.largesteps_lambda * (0.1 / 0.06) ** 2])
+        [TINY.optim.largesteps_lambda, 4 * TINY.optim.largesteps_lambda * (0.1 / 0.06) ** 2])
     # the second stage (32 px) asks for less than 3 pixels and is held at the limit: fewer faces
     assert capped["stages"][1]["edge_length"] > 0.06 * scale
     assert capped["stages"][1]["faces"] < free["stages"][1]["faces"]
@@ -276,8 +274,7 @@ def test_support_plane_is_never_crossed(capture, tmp_path):
     images, masks, sats, cams, init = _inputs(root)
     z0 = read_mesh(init).v_pos[:, 2].min() + 0.01
     save_plane(tmp_path / "plane.json", SupportPlane(np.array([0.0, 0.0, 1.0]), -z0))
-    s = OptimizeSettings(**{**TINY.__dict__, "optimizer": "adam", "lr_geometry": 0.05,
-                            "stages": (StageSettings(0.12, 32, 4), StageSettings(0.09, 32, 2))})
+    s = replace(TINY, optimizer="adam", lr_geometry=0.05, stages=(StageSettings(0.12, 32, 4), StageSettings(0.09, 32, 2)))
     optimize_capture(images, masks, sats, cams, init, tmp_path / "free", s, progress=False,
                      plane_json=tmp_path / "absent.json")
     optimize_capture(images, masks, sats, cams, init, tmp_path / "plane", s, progress=False,
@@ -293,16 +290,14 @@ def test_support_plane_is_never_crossed(capture, tmp_path):
 
 
 def test_imaging_loop_resumes_after_kill_and_matches(capture, tmp_path, drjit_single_thread):
-    """imaging_loop: select, killed in stage 1 (after the selection on stage 0's model): the
+    """imaging.loop: select, killed in stage 1 (after the selection on stage 0's model): the
     resumed run restores the chosen terms and their refined values and ends where the
     uninterrupted run does (bit for bit: drjit on one thread)."""
-    import dataclasses
-
     root, _ = capture
     images, masks, sats, cams, init = _inputs(root)
     # the flash offset given (capture.yaml), so stage 1 renders with it whatever the selection keeps
-    s = dataclasses.replace(TINY, imaging_loop="select", imaging_terms=("exposure", "falloff"), holdout_every=4,
-                            select_iterations=8, select_image_size=32, select_spp=1, flash_offset=(0.02, 0.0, 0.0))
+    s = replace(TINY, loop="select", terms=("exposure", "falloff"), holdout_every=4, select_iterations=8,
+                select_image_size=32, select_spp=1, flash_offset=(0.02, 0.0, 0.0))
     ref = optimize_capture(images, masks, sats, cams, init, tmp_path / "ref", s, progress=False)
     err = _killed_run(root, tmp_path / "run", 7, s)  # stage 1, iteration 2 (last checkpoint: iteration 1)
     assert "imaging terms for the loop" in err

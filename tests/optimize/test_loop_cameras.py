@@ -17,11 +17,12 @@ from recon.optimize import objective
 from recon.optimize.camera_refine import rotation_exp
 from recon.report.html import Page, render_page
 from recon.report.stage import camera_refinement
+from recon.sections import replace
 
 TINY = OptimizeSettings(
-    resolution=32, spp=1, views_per_iteration=4, checkpoint_every=100, w_edge=0.01,
-    stages=(StageSettings(0.12, 32, 4),), select_material=False, select_image_size=32, select_spp=1,
-    camera_align_iterations=6,
+    render={"resolution": 32, "spp": 1}, schedule={"views_per_iteration": 4, "checkpoint_every": 100},
+    loss={"w_edge": 0.01}, stages=(StageSettings(0.12, 32, 4),),
+    select={"select_material": False, "select_image_size": 32, "select_spp": 1}, cameras={"align_iterations": 6},
 )
 
 
@@ -58,23 +59,23 @@ def _sfm_cameras(root, folder, deg=1.0, seed=0):
 
 
 def _settings(**kw):
-    return OptimizeSettings(**{**TINY.__dict__, **kw})
+    return replace(TINY, **kw)
 
 
 def test_camera_mode_and_settings():
     s = OptimizeSettings()
-    assert s.refine_cameras == "select"
+    assert s.cameras.refine == "select"
     assert s.camera_mode("sfm")[0] == "select"
     assert s.camera_mode("given")[0] == "off" and s.camera_mode(None)[0] == "off"
-    assert OptimizeSettings(refine_given_cameras=True).camera_mode("given")[0] == "select"
-    assert OptimizeSettings(refine_cameras="off").camera_mode("sfm")[0] == "off"
-    with pytest.raises(ValueError, match="refine_cameras must be one of"):
-        OptimizeSettings(refine_cameras="yes")
-    with pytest.raises(ValueError, match="camera_sigma_rotation_deg"):
-        OptimizeSettings(camera_sigma_rotation_deg=0.0)
+    assert OptimizeSettings(cameras={"refine_given": True}).camera_mode("given")[0] == "select"
+    assert OptimizeSettings(cameras={"refine": "off"}).camera_mode("sfm")[0] == "off"
+    with pytest.raises(ValueError, match="refine must be one of"):
+        OptimizeSettings(cameras={"refine": "yes"})
+    with pytest.raises(ValueError, match="sigma_rotation_deg"):
+        OptimizeSettings(cameras={"sigma_rotation_deg": 0.0})
     with pytest.raises(ValueError, match="w_camera"):
-        OptimizeSettings(w_camera=-1.0)
-    assert objective.weights(s)["camera"] == s.w_camera
+        OptimizeSettings(loss={"w_camera": -1.0})
+    assert objective.weights(s)["camera"] == s.loss.w_camera
     assert objective.camera_terms(None, [0], objective.weights(s)) == {}
 
 
@@ -107,8 +108,7 @@ def test_sfm_cameras_refined_written_and_resumed(capture, tmp_path, drjit_single
     the backward pass's float atomics in a fixed order, so resumed == uninterrupted)."""
     images, masks = _inputs(capture)
     cams_json, true = _sfm_cameras(capture, tmp_path / "poses")
-    s = _settings(refine_cameras="on", checkpoint_every=10, stages=(StageSettings(0.12, 32, 30),),
-                  camera_lr_rotation_deg=0.05)
+    s = _settings(refine="on", checkpoint_every=10, stages=(StageSettings(0.12, 32, 30),), lr_rotation_deg=0.05)
     ref = optimize_capture(images, masks, None, cams_json, capture / "init.obj", tmp_path / "ref", s,
                            progress=False)
     info = ref["camera_refinement"]
@@ -149,7 +149,7 @@ def test_select_decides_on_held_out_views_and_the_report_shows_it(capture, tmp_p
     refined only when kept, held-out cameras aligned); metrics.json's section lists every view."""
     images, masks = _inputs(capture)
     cams_json, _ = _sfm_cameras(capture, tmp_path / "poses", deg=2.0, seed=1)
-    s = _settings(refine_cameras="select", stages=(StageSettings(0.12, 32, 12),))
+    s = _settings(refine="select", stages=(StageSettings(0.12, 32, 12),))
     summary = optimize_capture(images, masks, None, cams_json, capture / "init.obj", tmp_path / "out", s,
                                progress=False)
     info = summary["camera_refinement"]
@@ -179,18 +179,18 @@ def test_select_decides_on_held_out_views_and_the_report_shows_it(capture, tmp_p
 
 
 def test_cameras_held_before_camera_first_stage(capture, tmp_path):
-    """``camera_first_stage``: the cameras are held through the stages before it (a value past
+    """``cameras.first_stage``: the cameras are held through the stages before it (a value past
     the last stage holds them throughout: output cameras = input), stepped from it on; it is
     refused negative."""
     for bad in (-1, "first", True, 1.5):
-        with pytest.raises(ValueError, match="camera_first_stage"):
-            OptimizeSettings(camera_first_stage=bad)
+        with pytest.raises(ValueError, match="first_stage"):
+            OptimizeSettings(cameras={"first_stage": bad})
     images, masks = _inputs(capture)
     cams_json, _ = _sfm_cameras(capture, tmp_path / "poses", deg=1.5, seed=2)
     stages = (StageSettings(0.14, 32, 6), StageSettings(0.12, 32, 6))
     given = load_cameras(cams_json).by_stem()
     for first, moves in ((2, False), (1, True)):
-        s = _settings(refine_cameras="on", stages=stages, camera_first_stage=first, camera_lr_rotation_deg=0.1)
+        s = _settings(refine="on", stages=stages, first_stage=first, lr_rotation_deg=0.1)
         out = tmp_path / f"first{first}"
         summary = optimize_capture(images, masks, None, cams_json, capture / "init.obj", out, s, progress=False)
         views = summary["camera_refinement"]["corrections"]["views"]
@@ -203,23 +203,23 @@ def test_cameras_held_before_camera_first_stage(capture, tmp_path):
 
 
 def test_camera_first_stage_auto_waits_for_the_loop_imaging():
-    """``camera_first_stage: auto`` (the default): with the loop's imaging selection to come
-    (``imaging_loop`` on, held-out views) the cameras are refined from the first stage rendered
-    under its terms, ``imaging_loop_stage`` + 1, when there is such a stage; otherwise from
+    """``cameras.first_stage: auto`` (the default): with the loop's imaging selection to come
+    (``imaging.loop`` on, held-out views) the cameras are refined from the first stage rendered
+    under its terms, ``imaging.loop_stage`` + 1, when there is such a stage; otherwise from
     stage 0. A number is taken as it is."""
     auto = OptimizeSettings()
-    assert auto.camera_first_stage == "auto"
+    assert auto.cameras.first_stage == "auto"
     assert auto.camera_start(3, imaging_in_loop=True) == 1
     assert auto.camera_start(3, imaging_in_loop=False) == 0
     assert auto.camera_start(1, imaging_in_loop=True) == 0  # no stage after the selection: never selected
-    later = OptimizeSettings(imaging_loop_stage=1)
+    later = OptimizeSettings(imaging={"loop_stage": 1})
     assert later.camera_start(3, True) == 2 and later.camera_start(2, True) == 0
-    assert OptimizeSettings(camera_first_stage=0).camera_start(3, True) == 0
-    assert OptimizeSettings(camera_first_stage=2).camera_start(3, False) == 2
+    assert OptimizeSettings(cameras={"first_stage": 0}).camera_start(3, True) == 0
+    assert OptimizeSettings(cameras={"first_stage": 2}).camera_start(3, False) == 2
 
 
 def test_cameras_wait_for_the_loop_imaging_on_jpeg_photos(capture, tmp_path):
-    """``camera_first_stage: auto`` with ``imaging_loop: select``: photos from JPEG (the
+    """``cameras.first_stage: auto`` with ``imaging.loop: select``: photos from JPEG (the
     linearize stage's linear.json says "ldr") have their cameras held until the imaging terms
     are chosen on stage 0's model, and the refined run takes the control's choice (its
     checkpoint's evidence says so); linear photos have them refined from stage 0."""
@@ -227,7 +227,7 @@ def test_cameras_wait_for_the_loop_imaging_on_jpeg_photos(capture, tmp_path):
 
     images, masks = _inputs(capture)
     cams_json, _ = _sfm_cameras(capture, tmp_path / "poses", deg=0.5, seed=4)
-    s = _settings(refine_cameras="select", imaging_loop="select", imaging_terms=("exposure",), holdout_every=4,
+    s = _settings(refine="select", loop="select", terms=("exposure",), holdout_every=4,
                   select_iterations=8, select_image_size=32, select_spp=1,
                   stages=(StageSettings(0.14, 32, 4), StageSettings(0.12, 32, 4)))
     jpeg = tmp_path / "jpeg_views"

@@ -103,8 +103,8 @@ def test_selection_steps_ladder():
 
 def test_settings_validation():
     with pytest.raises(ValueError, match="holdout_every"):
-        OptimizeSettings(holdout_every=1)
-    assert OptimizeSettings(select_material=True).holds_out
+        OptimizeSettings(select={"holdout_every": 1})
+    assert OptimizeSettings(select={"select_material": True}).holds_out
     assert not OptimizeSettings().holds_out
 
 

@@ -23,9 +23,10 @@ from recon.optimize.radiometry import (ESTIMATE_SIZE, WHITE_PERCENTILE, WHITE_VA
                                        LightScaleError, check_not_collapsed, clipped_fraction,
                                        estimate_light_scale, mask_coverage, unit_render)
 from recon.optimize.views import Views
+from recon.sections import replace
 
-TINY = OptimizeSettings(resolution=32, spp=1, views_per_iteration=2, checkpoint_every=2, w_edge=0.01,
-                        stages=(StageSettings(0.12, 32, 4), StageSettings(0.09, 64, 4)))
+TINY = OptimizeSettings(render={"resolution": 32, "spp": 1}, schedule={"views_per_iteration": 2, "checkpoint_every": 2},
+                        loss={"w_edge": 0.01}, stages=(StageSettings(0.12, 32, 4), StageSettings(0.09, 64, 4)))
 
 
 @pytest.fixture(scope="module")
@@ -137,8 +138,8 @@ def test_estimate_refuses_what_cannot_work(capture):
 
 
 def test_given_light_is_used_and_estimate_on_request(capture, tmp_path):
-    """cameras.json with light.intensity: used as is (albedo absolute); light_scale: estimate
-    ignores it; light_scale: given without one is an error naming the file and the fix."""
+    """cameras.json with light.intensity: used as is (albedo absolute); light.scale: estimate
+    ignores it; light.scale: given without one is an error naming the file and the fix."""
     from recon.optimize.loop import _light_scale
 
     root, _ = capture
@@ -147,10 +148,10 @@ def test_given_light_is_used_and_estimate_on_request(capture, tmp_path):
     stated = dataclasses.replace(cams, light_intensity=1.0, light_known=True)
     ls = _light_scale(TINY, stated, views, init, "cameras.json")
     assert (ls.intensity, ls.source, ls.albedo) == (1.0, "given", "absolute")
-    est = _light_scale(dataclasses.replace(TINY, light_scale="estimate"), stated, views, init, "cameras.json")
+    est = _light_scale(replace(TINY, scale="estimate"), stated, views, init, "cameras.json")
     assert est.source == "estimated" and est.intensity != 1.0
     with pytest.raises(OptimizeError, match=r"cameras.json: states no light.intensity.*light_intensity in capture.yaml"):
-        _light_scale(dataclasses.replace(TINY, light_scale="given"), cams, views, init, "cameras.json")
+        _light_scale(replace(TINY, scale="given"), cams, views, init, "cameras.json")
     # the file round trip keeps "not stated"
     save_cameras(tmp_path / "c.json", cams)
     assert "intensity" not in json.loads((tmp_path / "c.json").read_text())["light"]
@@ -184,8 +185,7 @@ def test_a_capture_built_to_collapse_stops(capture, tmp_path):
     save_cameras(tmp_path / "weak.json", dataclasses.replace(cams, light_intensity=1e-3, light_known=True))
     images = sorted((root / "images").glob("*.exr"))
     masks = [root / "masks" / f"{p.stem}.png" for p in images]
-    s = dataclasses.replace(TINY, w_laplacian=TINY.w_laplacian * 50, lr_geometry=0.02,
-                            stages=(StageSettings(0.12, 32, 40),))
+    s = replace(TINY, w_laplacian=TINY.loss.w_laplacian * 50, lr_geometry=0.02, stages=(StageSettings(0.12, 32, 40),))
     with pytest.raises(OptimizeError, match=r"collapsed.*I_e = 0.001 given"):
         optimize_capture(images, masks, None, tmp_path / "weak.json", root / "init.obj", tmp_path / "weak", s,
                          progress=False)

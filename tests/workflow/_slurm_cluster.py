@@ -23,8 +23,8 @@ TINY_SETTINGS = {
     "init_mesh": {"resolution": 48, "target_faces": 1000, "remesh_iterations": 2},
     "uv": {"texture_size": 64},
     "optimize": {
-        "select_material": False,
-        "checkpoint_every": 5,
+        "select": {"select_material": False},
+        "schedule": {"checkpoint_every": 5},
         "stages": [{"edge_length": 0.08, "texture_size": 64, "iterations": 20}],
     },
     "report": {"spp": 4, "gt_views": 2, "max_views": 2, "chamfer_samples": 20000,

@@ -40,8 +40,8 @@ pytestmark = pytest.mark.slow
 # material selection): the kills and resumptions are the same, the run three times shorter.
 CAPTURE_YAML = """\
 optimize:
-  select_material: false
-  checkpoint_every: 20
+  select: {select_material: false}
+  schedule: {checkpoint_every: 20}
   stages:
     - {edge_length: 0.05, texture_size: 256, iterations: 40}
     - {edge_length: 0.03, texture_size: 256, iterations: 40, lr_decay: 0.1}

@@ -30,7 +30,7 @@ CAPTURE_YAML = """
 uv:
   texture_size: 128
 optimize:
-  select_material: false
+  select: {select_material: false}
   stages:
     - {edge_length: 0.06, texture_size: 128, iterations: 20}
 """
