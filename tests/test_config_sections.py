@@ -194,6 +194,17 @@ def test_optimize_keys_that_name_no_place_are_refused(tmp_path):
         settings_from_dict(values)
 
 
+def test_optimize_presets_are_written_in_sections():
+    """Every preset's optimize section builds without a flat key's warning or a DeprecationWarning."""
+    from recon.optimize.settings import OptimizeSettings, settings_from_dict
+
+    for preset in rc.PRESETS:
+        assert not sections.move_flat(OptimizeSettings, rc.load_preset(preset)["optimize"])[1], preset
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            settings_from_dict(rc.stage_settings("optimize", preset))
+
+
 def test_optimize_flat_python_keywords_and_the_flat_record():
     """Flat keywords and reads still work, with a DeprecationWarning naming the place; to_dict()
     records the settings flat under the names from before the sections (summary.json, the
