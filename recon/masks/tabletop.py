@@ -131,6 +131,24 @@ def _footprint_px(cam, point: np.ndarray, length: float) -> float:
     return float(length * 0.5 * (cam.K[0, 0] + cam.K[1, 1]) / max(float(z[0]), 1e-12))
 
 
+def beyond_lit_table(cam, plane: SupportPlane, table: np.ndarray, foot: np.ndarray, share: float = 0.95
+                     ) -> np.ndarray:
+    """(H, W) bool at ``cam``'s size: the pixels whose ray misses the support plane, or meets it
+    farther from ``foot`` than the table this view sees lit (the ``share`` quantile of the
+    distances of its ``table`` pixels). Only there does a dark pixel see the far background: the
+    flash at the camera lights the table nearer than that, so a dark pixel whose ray meets the
+    plane there sees something dark in front of the lit table (a dark glaze), and says nothing.
+    All True when the view sees too little table to tell."""
+    from recon.masks.geometry import plane_points
+
+    P, hit = plane_points(cam, plane)
+    seen = table & hit
+    if seen.sum() < 100:
+        return np.ones(table.shape, bool)
+    dist = np.linalg.norm(P - np.asarray(foot, float), axis=-1)
+    return ~hit | (dist > float(np.quantile(dist[seen], share)))
+
+
 def refine_view(rgb_linear: np.ndarray, silhouette: np.ndarray, table: np.ndarray, logodds: np.ndarray,
                 low: np.ndarray, margin_px: int, settings: SegmentSettings = SegmentSettings(),
                 seed: int = 0) -> np.ndarray:
@@ -208,7 +226,7 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
     # ---- step 1: where each view sees the table ----
     evidence = [table_evidence(logs, wcams, plane, i, nbrs[i], heights, ev) for i in range(n)]
     tables = [e["table"] for e in evidence]
-    dark = [unlit(im, t, settings.unlit_fraction, (w.width, w.height))
+    dark = [unlit(im, t, settings.unlit_fraction, (w.width, w.height)) & beyond_lit_table(w, plane, t, foot)
             for im, t, w in zip(images, tables, wcams, strict=True)]
     rgbs = [resized(im, (w.width, w.height)) for im, w in zip(images, wcams, strict=True)]
     textured = [window_stats(g, settings.diff_window)[1] >= ev.min_contrast for g in logs]
@@ -331,4 +349,4 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
     return masks, info
 
 
-__all__ = ["SegmentError", "SegmentSettings", "refine_view", "segment_tabletop"]
+__all__ = ["SegmentError", "SegmentSettings", "beyond_lit_table", "refine_view", "segment_tabletop"]
