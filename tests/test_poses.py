@@ -673,12 +673,15 @@ def test_focal_length_with_a_prior(synthetic_sfm):
 
 
 def test_sfm_on_real_photos(shared_data, tmp_path):
-    """11 JPEGs of the Chateau de Sceaux (openMVG test set), at a third of their size."""
+    """11 JPEGs of the Chateau de Sceaux (openMVG test set), at a quarter of their size (708 x 532)
+    and at most 2048 features per view. Measured: 11/11 registered, 0.36 px, the focal length 2.2 %
+    from K.txt, as at 0.35 of their size with 4096 features (2.2 %, 0.40 px) for a third of the CPU
+    seconds (exhaustive matching of 4096 features per view was most of them; issue 30)."""
     import cv2
 
     src = shared_data / "real" / "sceaux"
     K = np.loadtxt(src / "K.txt")
-    factor = 0.35
+    factor = 0.25
     lin = tmp_path / "linear"
     entries = {}
     for p in sorted(src.glob("*.JPG")):
@@ -689,7 +692,7 @@ def test_sfm_on_real_photos(shared_data, tmp_path):
         entries[p.stem] = {"source": f"images/{p.name}", "focal_length_px": K[0, 0] * factor}
     (lin / "linear.json").write_text(json.dumps({"images": entries}))
     t0 = time.perf_counter()
-    diag = rp.run_poses(lin, tmp_path / "poses", rp.PoseSettings(features={"max_num_features": 4096}),
+    diag = rp.run_poses(lin, tmp_path / "poses", rp.PoseSettings(features={"max_num_features": 2048}),
                         linear_json=lin / "linear.json")
     dt = time.perf_counter() - t0
     print(f"\nsceaux: {diag['registered']}/11 registered, {diag['mean_reprojection_error_px']:.3f} px, "  # noqa: T201
