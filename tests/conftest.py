@@ -7,6 +7,16 @@ from pathlib import Path
 
 # before any plugin imports torch: see recon/__init__.py (OpenMP threads must not spin)
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# before numpy, scipy or pycolmap load their OpenBLAS (it reads this once), for this process and
+# the Snakemake runs it starts: OpenBLAS splits a large product over its threads and waits for
+# all of them, so on a busy machine every call waits for a descheduled thread, and the waiting
+# threads spin. The (N, 3) x (3, 3) projections of the voxel grids (recon/hull.py, recon/masks/vote.py)
+# took 30x the wall seconds beside two busy processes (10 products of 2M points: 4.8 s, 0.14 s on
+# one thread) and the tabletop masks of one capture 48 CPU s instead of 13 (issue 30). One thread
+# gives the same products (OpenBLAS splits the rows, not the sums): the masks and initial mesh
+# of a test capture are byte-identical. This is the tests' setting (the pipeline keeps OpenBLAS's
+# default threads for a user; torch uses MKL and is not affected).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import pytest
 
