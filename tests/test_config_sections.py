@@ -96,14 +96,14 @@ def test_build_settings_refuses_what_names_no_place():
         rc.build_settings(_Settings, {"size": 8, "inner": {"size": 9}}, "x.yaml")
 
 
-def _capture(tmp_path, preset_text, capture_text):
+def _capture(tmp_path, preset_text, capture_text, stage="poses"):
     presets = tmp_path / "presets"
     presets.mkdir(parents=True)
     (presets / "draft.yaml").write_text(preset_text)
     cap = tmp_path / "cap"
     cap.mkdir()
     (cap / "capture.yaml").write_text(capture_text)
-    return rc.stage_settings("poses", "draft", cap, presets), cap
+    return rc.stage_settings(stage, "draft", cap, presets), cap
 
 
 def test_capture_sections_merge_key_by_key_and_name_their_file(tmp_path):
@@ -148,13 +148,7 @@ def test_no_settings_class_over_40_fields():
 
 # ---- OptimizeSettings ----
 def _optimize(tmp_path, preset_text, capture_text):
-    presets = tmp_path / "presets"
-    presets.mkdir(parents=True)
-    (presets / "draft.yaml").write_text(preset_text)
-    cap = tmp_path / "cap"
-    cap.mkdir()
-    (cap / "capture.yaml").write_text(capture_text)
-    return rc.stage_settings("optimize", "draft", cap, presets), cap
+    return _capture(tmp_path, preset_text, capture_text, stage="optimize")
 
 
 def test_optimize_flat_keys_of_an_old_capture_yaml_still_work(tmp_path, caplog):

@@ -386,14 +386,14 @@ class CameraSettings:
     refine: str = "select"
     refine_given: bool = False
     intrinsics: bool = True
-    sigma_rotation_deg: float = 0.5
-    sigma_translation: float = 0.01
-    sigma_focal: float = 0.02
-    sigma_principal: float = 0.01
-    lr_rotation_deg: float = 0.02
-    lr_translation: float = 0.0005
-    lr_focal: float = 0.0005
-    lr_principal: float = 0.0002
+    sigma_rotation_deg: float = CameraPrior.sigma_rotation_deg
+    sigma_translation: float = CameraPrior.sigma_translation
+    sigma_focal: float = CameraPrior.sigma_focal
+    sigma_principal: float = CameraPrior.sigma_principal
+    lr_rotation_deg: float = CameraPrior.lr_rotation_deg
+    lr_translation: float = CameraPrior.lr_translation
+    lr_focal: float = CameraPrior.lr_focal
+    lr_principal: float = CameraPrior.lr_principal
     align_iterations: int = 40
     first_stage: int | str = "auto"
 
@@ -410,11 +410,7 @@ class CameraSettings:
     def prior(self) -> CameraPrior:
         """The prior's widths and the learning rates."""
         try:
-            return CameraPrior(
-                sigma_rotation_deg=self.sigma_rotation_deg, sigma_translation=self.sigma_translation,
-                sigma_focal=self.sigma_focal, sigma_principal=self.sigma_principal,
-                lr_rotation_deg=self.lr_rotation_deg, lr_translation=self.lr_translation,
-                lr_focal=self.lr_focal, lr_principal=self.lr_principal)
+            return CameraPrior(**{f.name: getattr(self, f.name) for f in dataclasses.fields(CameraPrior)})
         except ValueError as e:
             raise ValueError(str(e).replace("camera prior ", "")) from None
 
