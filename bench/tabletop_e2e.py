@@ -37,6 +37,22 @@ Prints a table (tabletop beside void per object, ratio of final accuracy) and wr
 
     .venv/bin/python bench/tabletop_e2e.py --out /tmp/tabletop/e2e --views 40 --res 320
 
+``--family SCENE...`` (issue 32 item 6): the scenes of the masks family instead (bench/masks.py's
+``SCENES``: their object, palette, imaging, room and cameras), ``--views``/``--res``/``--spp``
+overriding their size where given, each beside its void peer (``<scene>-void``: the same object,
+palette, imaging and cameras with ``scene="tabletop_void"``; no wall, no lamps; the views the
+scene takes close up, cut by the frame, are the peer's too; the stand's peer is its blob, base
+not cut, alone: ``base_cut=0``). The captures hold the photos alone: no cameras, no masks, no
+capture.yaml. One row per capture: whether ``export/asset.glb`` was made, or the stage that
+stopped and its log's last line; the mask IoU; the initial mesh's genus (``init_mesh.json``)
+and accuracy; final accuracy and seen completeness; the share of the surface that is not the
+object; final accuracy over the void peer's (target: every scene makes an asset, within 1.5x).
+A capture without a support plane (the stand) is measured against the horizontal plane through
+the object's lowest point (the same plane its void peer's ``gt/plane.json`` names).
+
+    OMP_WAIT_POLICY=PASSIVE .venv/bin/python bench/tabletop_e2e.py --out /tmp/e2e --views 40 --res 384 \
+        --family wood-blob glossy-mug room-smooth wood-vase dark-bowl stand-blob --docs /tmp/e2e/table.md
+
 CPU is scarce on the development machine: captures are cached in ``<out>/captures`` and
 Snakemake redoes nothing that is done.
 """
@@ -44,7 +60,7 @@ Snakemake redoes nothing that is done.
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import contextlib
 import json
 import logging
 import os
@@ -62,9 +78,14 @@ from recon.io.cameras import Camera, CameraSet, load_cameras, look_at  # noqa: E
 from recon.io.images import read_exr, read_mask  # noqa: E402
 from recon.io.mesh import Mesh, read_mesh, read_obj  # noqa: E402
 from recon.metrics import align_cameras, distance_to_mesh, image_rmse, pose_errors, seen_by  # noqa: E402
+from recon import sections  # noqa: E402
 from recon.poses.frame import rotate_cameras  # noqa: E402
-from recon.support import load_plane  # noqa: E402
-from recon.synth.capture import PRESETS, make_capture  # noqa: E402
+from recon.support import SupportPlane, load_plane  # noqa: E402
+from recon.synth.capture import PRESETS, SynthSettings, make_capture, recorded_settings  # noqa: E402
+from recon.stages import NAMES as STAGE_NAMES  # noqa: E402
+
+sys.path.insert(0, str(REPO / "bench"))
+from masks import SCENES as FAMILY  # noqa: E402  (bench/masks.py: the scene family)
 
 log = logging.getLogger("bench.tabletop_e2e")
 SCENES = ("tabletop", "tabletop_void")
@@ -76,22 +97,88 @@ PHONE = {"format": "jpg", "tone_curve": "phone", "flash_offset": (0.19, 0.0, 0.0
 
 def capture_settings(obj: str, scene: str, args):
     base = PRESETS[f"tabletop-{obj}"]
-    h = int(round(args.res * 3 / 4 / 2)) * 2
-    s = dataclasses.replace(base, scene=scene, n_views=args.views, width=args.res, height=h, spp=args.spp,
-                            write_cameras=args.given_cameras, write_masks=args.given_masks, write_gt_linear=False)
-    return dataclasses.replace(s, **PHONE) if args.phone else s
+    views, res, spp = args.views or 40, args.res or 320, args.spp or 32
+    h = int(round(res * 3 / 4 / 2)) * 2
+    s = sections.replace(base, scene=scene, n_views=views, width=res, height=h, spp=spp,
+                         write_cameras=args.given_cameras, write_masks=args.given_masks, write_gt_linear=False)
+    return sections.replace(s, **PHONE) if args.phone else s
 
 
-def snakemake(captures: Path, results: Path, targets: list[str], preset: str) -> float:
+def family_settings(name: str, void: bool, args) -> SynthSettings:
+    """The family scene ``name`` (bench/masks.py) at the bench's size where given, the photos alone
+    in the capture; ``void``: its void peer (same object, palette, imaging and cameras, no table,
+    no room; the stand's peer keeps the blob's round base, as the stand scene does)."""
+    over = dict(FAMILY[name])
+    if args.views:
+        over["n_views"] = args.views
+    if args.res:
+        over["height"] = int(round(args.res * over["height"] / over["width"] / 2)) * 2
+        over["width"] = args.res
+    if args.spp:
+        over["spp"] = args.spp
+    over.update(write_cameras=args.given_cameras, write_masks=args.given_masks, write_gt_linear=False,
+                state_light=False)
+    if void:
+        # recon.synth's tabletop_void cuts the base flat as the tabletop scene does; the stand scene
+        # does not cut it: its peer keeps it whole (base_cut 0 returns the mesh unchanged)
+        over.update(scene="tabletop_void", wall=0.0, lamps=0.0, closeups=0.0,
+                    **({"base_cut": 0.0} if FAMILY[name].get("scene") == "stand" else {}))
+    return sections.replace(SynthSettings(), **over)
+
+
+@contextlib.contextmanager
+def peer_cameras(scene_settings: SynthSettings):
+    """recon.synth's tabletop_void scene has no close-up views (the setting is refused there); the
+    peer of a scene that has them gets the scene's own: its hand-held rings with the same views
+    moved close (the same seeded draw), so that the two captures share every camera."""
+    import recon.synth.capture as capture
+    from recon.synth.tabletop import closeup_cameras
+
+    original = capture.tabletop_cameras
+    if scene_settings.variations.closeups > 0:
+        capture.tabletop_cameras = lambda s, target=(0.0, 0.0, 0.0): closeup_cameras(
+            original(s, target), scene_settings, target)
+    try:
+        yield
+    finally:
+        capture.tabletop_cameras = original
+
+
+def _jsonable(x):
+    return json.loads(json.dumps(x, default=lambda v: v.tolist() if hasattr(v, "tolist") else str(v)))
+
+
+def make_cached(cap: Path, settings: SynthSettings, command: str, peer_of: SynthSettings | None = None) -> None:
+    """Make the capture unless ``cap`` holds one with these settings (another one there is an error:
+    use another ``--out``)."""
+    meta = cap / "gt" / "synth.json"
+    if meta.is_file():
+        if json.loads(meta.read_text())["settings"] != _jsonable(recorded_settings(settings)):
+            raise SystemExit(f"{cap}: a cached capture with other settings; remove it or use another --out")
+        return
+    t0 = time.perf_counter()
+    with peer_cameras(peer_of) if peer_of is not None else contextlib.nullcontext():
+        make_capture(cap, settings, command=command)
+    log.info("%s: made in %.0f s", cap.name, time.perf_counter() - t0)
+
+
+def same_cameras(a: Path, b: Path) -> bool:
+    ca, cb = load_cameras(a / "gt" / "cameras.json"), load_cameras(b / "gt" / "cameras.json")
+    return len(ca) == len(cb) and all(
+        x.width == y.width and np.allclose(x.K, y.K) and np.allclose(x.world_to_camera, y.world_to_camera)
+        for x, y in zip(ca.frames, cb.frames, strict=True))
+
+
+def snakemake(captures: Path, results: Path, targets: list[str], preset: str, log_name: str = "snakemake.log") -> float:
     t0 = time.perf_counter()
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_WAIT_POLICY": "PASSIVE"}
     cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--keep-going", "--config", f"captures={captures}",
            f"results={results}", f"preset={preset}", "--", *targets]
     r = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
     results.mkdir(parents=True, exist_ok=True)  # absent when Snakemake failed before any job
-    (results / "snakemake.log").write_text(r.stdout + r.stderr)
+    (results / log_name).write_text(r.stdout + r.stderr)
     if r.returncode != 0:
-        log.warning("snakemake failed (%s); see %s", r.returncode, results / "snakemake.log")
+        log.warning("snakemake failed (%s); see %s", r.returncode, results / log_name)
     return time.perf_counter() - t0
 
 
@@ -184,14 +271,68 @@ def asset_placement(glb: Path, gt_plane, sim, mesh: Mesh) -> dict:
             "placement": extras.get("placement"), "scale_source": extras.get("scale_source")}
 
 
+def stopped_at(res: Path) -> dict | None:
+    """The first stage (pipeline order) whose log ends in failure: ``{"stage", "message", "log"}``
+    (the message of the log's ``<stage> failed: ...`` line, which the terminal showed too)."""
+    for name in STAGE_NAMES:
+        f = res / "logs" / f"{name}.log"
+        if not f.is_file():
+            continue
+        text = f.read_text(errors="replace")
+        key = f" {name} failed: "
+        if key in text:
+            return {"stage": name, "message": text[text.rindex(key) + len(key):].strip(), "log": str(f)}
+        for what in ("interrupted", "terminated"):
+            if text.rstrip().endswith(f"{name} {what}"):
+                return {"stage": name, "message": what, "log": str(f)}
+    return None
+
+
+def reference_plane(cap: Path, gt: Mesh) -> tuple[SupportPlane, str]:
+    """The true table (``gt/plane.json``), or for a capture without one (the stand) the
+    horizontal plane through the object's lowest point (synth scenes have +z up)."""
+    f = cap / "gt" / "plane.json"
+    if f.is_file():
+        return load_plane(f), "gt/plane.json"
+    return SupportPlane.through(gt.v_pos[np.argmin(gt.v_pos[:, 2])], [0.0, 0.0, 1.0]), "object's lowest point"
+
+
+def init_stats(res: Path) -> dict:
+    f = res / "init_mesh" / "init_mesh.json"
+    if not f.is_file():
+        return {}
+    s = json.loads(f.read_text())
+    iou = s.get("mask_iou") or {}
+    return {"genus": s.get("genus", (s.get("topology") or {}).get("genus")), "faces": s.get("faces"),
+            "silhouette_iou_mean": iou.get("mean"), "silhouette_iou_min": iou.get("min"),
+            "repairs": s.get("repairs", [])}
+
+
+def mask_ious(masks: Path, truth: list[np.ndarray], stems: list[str]) -> dict:
+    ious = []
+    for stem, t in zip(stems, truth, strict=True):
+        m = read_mask(masks / f"{stem}.png")
+        ious.append(float((m & t).sum() / max((m | t).sum(), 1)))
+    worst = int(np.argmin(ious))
+    return {"mean": float(np.mean(ious)), "min": float(ious[worst]), "worst_view": stems[worst],
+            "masks": str(masks)}
+
+
 def measure(cap: Path, res: Path, rng_seed: int = 0) -> dict:
-    out: dict = {}
+    out: dict = {"asset": (res / "export" / "asset.glb").is_file(), "stopped": stopped_at(res)}
     gt = read_obj(cap / "gt" / "mesh.obj")
     true = load_cameras(cap / "gt" / "cameras.json")
+    plane, out["plane_source"] = reference_plane(cap, gt)
     cams_file = res / "poses" / "cameras.json"
     if not cams_file.is_file():
         poses_log = res / "logs" / "poses.log"
         out["error"] = "no cameras (SfM failed?)" + (f": {poses_log}" if poses_log.is_file() else "")
+        if (res / "masks").is_dir() and (cap / "gt" / "masks").is_dir():
+            # the masks stage's own masks (the photos' frames) against the true ones
+            stems = [c.stem for c in true.frames]
+            if all((res / "masks" / f"{s}.png").is_file() for s in stems):
+                out["mask_iou"] = mask_ious(res / "masks", [read_mask(cap / "gt" / "masks" / f"{s}.png")
+                                                           for s in stems], stems)
         return out
     est = load_cameras(cams_file)
     sim = align_cameras(est, true)
@@ -201,20 +342,15 @@ def measure(cap: Path, res: Path, rng_seed: int = 0) -> dict:
     diag = json.loads((res / "poses" / "poses.json").read_text())
     out["support_plane"] = diag.get("support_plane")
     # masks in the stages' views
-    mdir = res / "poses" / "undistorted" / "masks"
     est_in_gt = rotate_cameras(est, sim)
-    truth = hit_masks(gt, est_in_gt.frames)
-    ious = []
-    for c, t in zip(est.frames, truth, strict=True):
-        m = read_mask(mdir / f"{c.stem}.png")
-        ious.append(float((m & t).sum() / max((m | t).sum(), 1)))
-    out["mask_iou"] = {"mean": float(np.mean(ious)), "min": float(np.min(ious))}
+    mdir = res / "poses" / "undistorted" / "masks"
+    if mdir.is_dir():
+        out["mask_iou"] = mask_ious(mdir, hit_masks(gt, est_in_gt.frames), [c.stem for c in est.frames])
     rng = np.random.default_rng(rng_seed)
     visible = visible_samples(gt, true, 20000, rng)
-    plane = load_plane(cap / "gt" / "plane.json")
     init = res / "init_mesh" / "mesh.ply"
     if init.is_file():
-        out["init"] = geometry(read_mesh(init), gt, visible, sim, rng, plane)
+        out["init"] = {**geometry(read_mesh(init), gt, visible, sim, rng, plane), **init_stats(res)}
     final = res / "optimize" / "mesh.obj"
     if not final.is_file():
         out["error"] = "optimize did not finish"
@@ -232,8 +368,8 @@ def measure(cap: Path, res: Path, rng_seed: int = 0) -> dict:
           zip(img_rec, img_gt, hit_masks(fm_gt, novel), hit_masks(gt, novel), strict=True)]
     out["novel_view_rmse"] = float(np.mean(rm))
     glb = res / "export" / "asset.glb"
-    if glb.is_file() and (cap / "gt" / "plane.json").is_file():
-        out["asset"] = asset_placement(glb, load_plane(cap / "gt" / "plane.json"), sim, fm)
+    if glb.is_file():
+        out["asset_placement"] = asset_placement(glb, plane, sim, fm)
     summary = res / "optimize" / "summary.json"
     if summary.is_file():
         s = json.loads(summary.read_text())
@@ -280,7 +416,7 @@ def table(results: dict) -> str:
             p = m["pose"]
             i, f = m.get("init", {}), m.get("final", {})
             ratio = f.get("accuracy") / void_acc if f.get("accuracy") and void_acc else None
-            a = m.get("asset", {})
+            a = m.get("asset_placement", {})
             rows.append(
                 f"| {obj} | {scene} | {m['registered']} | {_f(p.get('mean_rotation_deg'), '.3f')} "
                 f"| {_f(p.get('mean_center'), '.4f')} "
@@ -295,15 +431,99 @@ def table(results: dict) -> str:
     return "\n".join(rows)
 
 
+def _stop_text(m: dict) -> str:
+    s = m.get("stopped")
+    if s:
+        return f"stops at {s['stage']}: {s['message'].splitlines()[0]}".replace("|", "\\|")
+    return "no asset" + (f" ({m['error']})" if m.get("error") else "")
+
+
+def family_table(results: dict) -> str:
+    """One row per capture of the family: the asset or where it stopped, and the measures."""
+    rows = ["| scene | capture | asset | registered | mask IoU mean / min | init genus | init acc. / compl. "
+            "| final acc. / compl. | final acc. / void's | not the object (>2% of the unit) / of it below or "
+            "outside the footprint |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, r in results.items():
+        void_acc = r.get("void", {}).get("final", {}).get("accuracy")
+        for kind in ("scene", "void"):
+            m = r.get(kind)
+            if m is None:
+                continue
+            i, f, iou = m.get("init", {}), m.get("final", {}), m.get("mask_iou", {})
+            ratio = f.get("accuracy") / void_acc if f.get("accuracy") and void_acc else None
+            rows.append(
+                f"| {name} | {m['capture']} | {'yes' if m['asset'] else _stop_text(m)} | {m.get('registered', '-')} "
+                f"| {_f(iou.get('mean'), '.3f')} / {_f(iou.get('min'), '.3f')} | {_f(i.get('genus'), 'd')} "
+                f"| {_f(i.get('accuracy'))} / {_f(i.get('completeness_seen'))} "
+                f"| {_f(f.get('accuracy'))} / {_f(f.get('completeness_seen'))} "
+                f"| {_f(ratio, '.2f') if kind == 'scene' else ''} "
+                f"| {_f(f.get('far_2pct'), '.1%')} / {_f(f.get('outside_2pct'), '.1%')} |")
+    return "\n".join(rows)
+
+
+def family_verdict(results: dict) -> str:
+    scenes = [r["scene"] for r in results.values() if "scene" in r]
+    made = sum(bool(m["asset"]) for m in scenes)
+    within = [n for n, r in results.items() if r.get("scene", {}).get("final", {}).get("accuracy")
+              and r.get("void", {}).get("final", {}).get("accuracy")
+              and r["scene"]["final"]["accuracy"] <= 1.5 * r["void"]["final"]["accuracy"]]
+    return (f"assets: {made}/{len(scenes)} scenes ({sum(bool(r.get('void', {}).get('asset')) for r in results.values())}"
+            f"/{sum('void' in r for r in results.values())} void peers); final accuracy within 1.5x of the void "
+            f"peer's: {len(within)}/{len(scenes)} ({', '.join(within) or 'none'})")
+
+
+def run_family(args, out: Path) -> int:
+    caps, res = out / "captures", out / "results"
+    res.mkdir(parents=True, exist_ok=True)
+    path = out / "tabletop_e2e_family.json"
+    saved = json.loads(path.read_text()) if path.is_file() else {}
+    results: dict = saved.get("results", {})
+    seconds: dict = saved.get("workflow_seconds", {})
+    sizes = {}
+    for name in args.family:
+        scene_s, void_s = family_settings(name, False, args), family_settings(name, True, args)
+        sizes[name] = (f"{scene_s.cameras.n_views} views of {scene_s.cameras.width} x {scene_s.cameras.height} "
+                       f"({scene_s.photos.format}, spp {scene_s.photos.spp})")
+        caps_of = {"scene": name, "void": f"{name}-void"}
+        make_cached(caps / name, scene_s, f"bench/tabletop_e2e.py --family {name}")
+        make_cached(caps / caps_of["void"], void_s, f"bench/tabletop_e2e.py --family {name} (void peer)",
+                    peer_of=scene_s)
+        if not same_cameras(caps / name, caps / caps_of["void"]):
+            raise SystemExit(f"{name}: the void peer's cameras differ from the scene's")
+        if not args.measure_only:
+            seconds[name] = snakemake(caps, res, [f"{res}/{c}/export/asset.glb" for c in caps_of.values()],
+                                      args.preset, f"snakemake-{name}.log")
+            log.info("%s: workflow %.0f s", name, seconds[name])
+        results[name] = {k: {"capture": c, **measure(caps / c, res / c)} for k, c in caps_of.items()}
+        print(family_table({name: results[name]}).split("\n", 2)[-1], flush=True)  # noqa: T201
+        path.write_text(json.dumps({"command": " ".join(sys.argv), "results": results, "sizes": sizes,
+                                    "workflow_seconds": seconds}, indent=1, default=float))
+    done = {n: results[n] for n in args.family}
+    text = family_table(done)
+    size = sorted(set(sizes.values()))
+    settings = (f"{'; '.join(size)}, preset {args.preset}, no cameras, no masks, no capture.yaml in the captures "
+                f"(SfM, masks computed, flash intensity estimated)")
+    verdict = family_verdict(done)
+    print(settings)  # noqa: T201
+    print(text)  # noqa: T201
+    print(verdict)  # noqa: T201
+    if args.docs:
+        args.docs.write_text(f"{settings}\n\n{text}\n\n{verdict}\n")
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     p.add_argument("--out", type=Path, default=Path("bench/out/tabletop_e2e"))
     p.add_argument("--objects", nargs="+", default=["blob", "mug"], choices=["blob", "mug"])
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
-    p.add_argument("--views", type=int, default=40)
-    p.add_argument("--res", type=int, default=320)
-    p.add_argument("--spp", type=int, default=32)
+    p.add_argument("--family", nargs="+", choices=sorted(FAMILY), metavar="SCENE",
+                   help=f"the scenes of bench/masks.py's family instead of --objects ({', '.join(FAMILY)})")
+    p.add_argument("--views", type=int, help="views per capture (default 40; --family: the scene's)")
+    p.add_argument("--res", type=int, help="photo width, height at 3:4 (default 320; --family: the scene's)")
+    p.add_argument("--spp", type=int, help="samples per pixel of the photos (default 32; --family: the scene's)")
     p.add_argument("--preset", default="draft")
     p.add_argument("--given-cameras", action="store_true", help="write the true cameras into the captures")
     p.add_argument("--given-masks", action="store_true", help="write the true masks into the captures")
@@ -313,14 +533,13 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     out = args.out.resolve()
+    if args.family:
+        return run_family(args, out)
     caps, res = out / "captures", out / "results"
     res.mkdir(parents=True, exist_ok=True)
     names = {(o, s): f"{o}-{s}" for o in args.objects for s in args.scenes}
     for (o, s), name in names.items():
-        if not (caps / name / "gt" / "cameras.json").is_file():
-            t0 = time.perf_counter()
-            make_capture(caps / name, capture_settings(o, s, args), command=f"bench/tabletop_e2e.py ({name})")
-            log.info("%s: made in %.0f s", name, time.perf_counter() - t0)
+        make_cached(caps / name, capture_settings(o, s, args), f"bench/tabletop_e2e.py ({name})")
     seconds = None
     if not args.measure_only:
         seconds = snakemake(caps, res, [f"{res}/{n}/export/asset.glb" for n in names.values()], args.preset)
@@ -329,8 +548,9 @@ def main(argv=None) -> int:
     for (o, s), name in names.items():
         results.setdefault(o, {})[s] = measure(caps / name, res / name)
     text = table(results)
-    settings = (f"{args.views} views of {args.res} x {int(round(args.res * 3 / 4 / 2)) * 2} px "
-                f"({'phone JPEG' if args.phone else 'DNG'}, spp {args.spp}), preset {args.preset}, cameras "
+    cs = capture_settings(args.objects[0], args.scenes[0], args)
+    settings = (f"{cs.cameras.n_views} views of {cs.cameras.width} x {cs.cameras.height} px "
+                f"({'phone JPEG' if args.phone else 'DNG'}, spp {cs.photos.spp}), preset {args.preset}, cameras "
                 f"{'given' if args.given_cameras else 'withheld (SfM)'}, masks {'given' if args.given_masks else 'computed'}, "
                 "no capture.yaml")
     (out / "tabletop_e2e.json").write_text(json.dumps({"command": " ".join(sys.argv), "settings": settings,
