@@ -482,13 +482,17 @@ def void_reference(r: dict) -> tuple[float | None, str | None]:
 def family_verdict(results: dict) -> str:
     scenes = {n: r["scene"] for n, r in results.items() if "scene" in r}
     made = [n for n, m in scenes.items() if m["asset"]]
-    within = [n for n, r in results.items() if r.get("scene", {}).get("final", {}).get("accuracy")
-              and void_reference(r)[0] and r["scene"]["final"]["accuracy"] <= 1.5 * void_reference(r)[0]]
-    voids = [n for n, r in results.items() if "void" in r]
-    return (f"assets: {len(made)}/{len(scenes)} scenes"
-            f"{' (none: ' + ', '.join(n for n in scenes if n not in made) + ')' if len(made) < len(scenes) else ''}; "
-            f"void peers by SfM: {sum(bool(results[n]['void'].get('asset')) for n in voids)}/{len(voids)}; "
-            f"final accuracy within 1.5x of the void peer's: {len(within)}/{len(scenes)} ({', '.join(within) or 'none'})")
+    text = (f"assets: {len(made)}/{len(scenes)} scenes"
+            f"{' (none: ' + ', '.join(n for n in scenes if n not in made) + ')' if len(made) < len(scenes) else ''}")
+    for kind, what in (("void", "the void peer by SfM"), ("void_cams", "the void peer with the true cameras "
+                                                                         "(SfM registers too few of its views)")):
+        compared = [n for n, r in results.items() if void_reference(r)[1] == kind
+                    and r.get("scene", {}).get("final", {}).get("accuracy")]
+        within = [n for n in compared if results[n]["scene"]["final"]["accuracy"] <= 1.5 * void_reference(results[n])[0]]
+        if compared:
+            text += (f"; final accuracy within 1.5x of {what}: {len(within)}/{len(compared)} "
+                     f"({', '.join(within) or 'none'}; beyond: {', '.join(n for n in compared if n not in within) or 'none'})")
+    return text
 
 
 def run_family(args, out: Path) -> int:
