@@ -84,11 +84,11 @@ def synth_capture(base: Path, **overrides) -> Path:
 
     from recon.synth.capture import SynthSettings, make_capture
 
+    from _shared import made_once
+
     settings = sections.replace(SynthSettings(), **{**SYNTH_TEST, **overrides})
-    out = Path(base) / f"synth-{hashlib.sha1(repr(settings).encode()).hexdigest()[:12]}"
-    if not (out / "gt" / "cameras.json").is_file():
-        make_capture(out, settings)
-    return out
+    name = f"synth-{hashlib.sha1(repr(settings).encode()).hexdigest()[:12]}"
+    return made_once(base, name, lambda out: make_capture(out, settings))
 
 
 def linearize_and_mask(capture: Path, results: Path) -> tuple[Path, Path]:

@@ -20,11 +20,11 @@ def tabletop_capture(base: Path, **overrides) -> Path:
     from recon import sections
     from recon.synth.capture import SynthSettings, make_capture
 
+    from _shared import made_once
+
     settings = sections.replace(SynthSettings(), **{**TABLETOP_TEST, **overrides})
-    out = Path(base) / f"tabletop-{hashlib.sha1(repr(settings).encode()).hexdigest()[:12]}"
-    if not (out / "gt" / "cameras.json").is_file():
-        make_capture(out, settings)
-    return out
+    name = f"tabletop-{hashlib.sha1(repr(settings).encode()).hexdigest()[:12]}"
+    return made_once(base, name, lambda out: make_capture(out, settings))
 
 # the ChArUco mat capture (recon.marker): 8 views of 320 x 240, the mat's squares 0.05 scene
 # units (scale 0.1: the object ~0.19 units tall); ~20 s

@@ -86,25 +86,37 @@ def _cpu_seconds() -> float:
 _CPU_PHASES: list[tuple[float, str, str]] = []
 
 
+# Each phase's CPU seconds go into the test's report (``user_properties``), which pytest-xdist
+# carries from the worker that ran the test to the main process that prints the summary.
+def _record_cpu(item, phase: str, seconds: float) -> None:
+    item.user_properties.append((f"cpu_seconds_{phase}", seconds))
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_setup(item):
     t0 = _cpu_seconds()
     yield
-    _CPU_PHASES.append((_cpu_seconds() - t0, "setup", item.nodeid))
+    _record_cpu(item, "setup", _cpu_seconds() - t0)
 
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_call(item):
     t0 = _cpu_seconds()
     yield
-    _CPU_PHASES.append((_cpu_seconds() - t0, "call", item.nodeid))
+    _record_cpu(item, "call", _cpu_seconds() - t0)
 
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_teardown(item):
     t0 = _cpu_seconds()
     yield
-    _CPU_PHASES.append((_cpu_seconds() - t0, "teardown", item.nodeid))
+    _record_cpu(item, "teardown", _cpu_seconds() - t0)
+
+
+def pytest_runtest_logreport(report):
+    for key, seconds in report.user_properties:
+        if key == f"cpu_seconds_{report.when}":
+            _CPU_PHASES.append((seconds, report.when, report.nodeid))
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
