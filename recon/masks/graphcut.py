@@ -56,31 +56,56 @@ def graph_cut(cost_fg: np.ndarray, cost_bg: np.ndarray, guide: np.ndarray, smoot
 
 
 def colour_log_ratio(guide: np.ndarray, sure_fg: np.ndarray, sure_bg: np.ndarray, where: np.ndarray,
-                     components: int = 5, samples: int = 1500, seed: int = 0) -> np.ndarray | None:
+                     components: int = 5, samples: int = 1500, seed: int = 0, plain_fg: np.ndarray | None = None,
+                     novelty: float = 0.05) -> np.ndarray | None:
     """(H, W) log p(colour | object) - log p(colour | table) at ``where`` (0 elsewhere), from
     Gaussian mixtures (OpenCV EM, CIE Lab) fitted to this view's ``sure_fg`` and ``sure_bg``
-    pixels; None when either has too few pixels or nothing is asked."""
+    pixels; None when the table or the object has too few pixels or nothing is asked.
+
+    ``plain_fg``: object pixels without evidence of their own (deep inside the silhouette, where
+    the plane test says nothing: a plain glaze). Those whose colour the table's model does not
+    explain (a log-likelihood under it below the ``novelty`` quantile of its own samples') get
+    a second object model, and a pixel's object likelihood is the larger of the two: a plain
+    glaze whose colour no pixel with evidence shows (the blue lip of a glazed bell) is the
+    object's near the outline too, and a plain colour that the table shows as well (a dark glaze
+    and the shadow at the foot, a wood-coloured glaze and the table) changes nothing."""
     import cv2
 
-    if not where.any() or sure_fg.sum() < 10 * components or sure_bg.sum() < 10 * components:
+    if not where.any() or sure_bg.sum() < 10 * components:
         return None
     lab = cv2.cvtColor(guide, cv2.COLOR_RGB2Lab).astype(np.float64)
     rng = np.random.default_rng(seed)
-    out = np.zeros(guide.shape[:2])
+
+    def sample(x):
+        return x[rng.choice(len(x), samples, replace=False)] if len(x) > samples else x
+
     query = lab[where]
-    logp = []
-    for sel in (sure_fg, sure_bg):
-        x = lab[sel]
-        if len(x) > samples:
-            x = x[rng.choice(len(x), samples, replace=False)]
-        em = cv2.ml.EM_create()
-        em.setClustersNumber(components)
-        em.setCovarianceMatrixType(cv2.ml.EM_COV_MAT_DIAGONAL)
-        em.setTermCriteria((cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 20, 1e-3))
-        em.trainEM(x)
-        logp.append(_em_loglik(em, query))
-    out[where] = np.clip(logp[0] - logp[1], -10.0, 10.0)
+    fg = _em_fit(sample(lab[sure_fg]), components) if sure_fg.sum() >= 10 * components else None
+    x_bg = sample(lab[sure_bg])
+    bg = _em_fit(x_bg, components)
+    logp_fg = [] if fg is None else [_em_loglik(fg, query)]
+    if plain_fg is not None and plain_fg.any():
+        x = sample(lab[plain_fg])
+        x = x[_em_loglik(bg, x) < np.quantile(_em_loglik(bg, x_bg), novelty)]
+        if len(x) >= 10 * components:
+            logp_fg.append(_em_loglik(_em_fit(x, components), query))
+    if not logp_fg:
+        return None
+    out = np.zeros(guide.shape[:2])
+    out[where] = np.clip(np.max(logp_fg, axis=0) - _em_loglik(bg, query), -10.0, 10.0)
     return out
+
+
+def _em_fit(x: np.ndarray, components: int):
+    """An OpenCV EM Gaussian mixture (diagonal covariances) fitted to rows ``x (N, D)``."""
+    import cv2
+
+    em = cv2.ml.EM_create()
+    em.setClustersNumber(components)
+    em.setCovarianceMatrixType(cv2.ml.EM_COV_MAT_DIAGONAL)
+    em.setTermCriteria((cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 20, 1e-3))
+    em.trainEM(x)
+    return em
 
 
 def _em_loglik(em, x: np.ndarray) -> np.ndarray:

@@ -23,12 +23,15 @@ them, with no learned weights. The decision is made in 3D, by the views together
 3. **Per view, the hull's silhouette refined by a graph cut** (:func:`recon.masks.graphcut.graph_cut`)
    at the photo's own size, in a band about the silhouette as wide as a few voxels: the
    silhouette is the prior, pixels that see the table say background, colour models of the
-   object and the table (Gaussian mixtures of this view) weigh in, and a contrast-sensitive
-   smoothness term snaps the outline to the photo's edges.
-4. **Cross-check**: a second hull voted from the cut masks; each mask keeps what lies inside its
-   projection, and a hole in a mask is filled where the hull of the other views is solid there
-   (chance agreement with the table in one view), kept where the other views see through it
-   too (the table through a mug's handle) (:func:`recon.masks.vote.hole_support`).
+   object and the table (Gaussian mixtures of this view; the object's from the pixels the plane
+   test sees differ from the table, and from the plain ones whose colour the table does not
+   show) weigh in, and a contrast-sensitive smoothness term snaps the outline to the photo's
+   edges.
+4. **Cross-check** (:func:`cross_check`): a second hull voted from the cut masks, down to the
+   plane (they are silhouettes: the band is no limit to them); each mask keeps what lies inside
+   its projection, and a hole in a mask is filled where the hull of the other views is solid
+   there (chance agreement with the table in one view), kept where the other views see through
+   it too (the table through a mug's handle) (:func:`recon.masks.vote.hole_support`).
 
 A view whose object cannot be separated from the table (an empty mask, a mask touching all four
 image borders) is named in a :class:`SegmentError` with what to try.
@@ -49,7 +52,7 @@ from recon.masks.evidence import (EvidenceSettings, log_luminance, plane_differe
                                   sweep_heights, table_evidence, unlit, window_stats, working_scale)
 from recon.masks.geometry import neighbours, parallax_band
 from recon.masks.graphcut import colour_log_ratio, graph_cut
-from recon.masks.vote import carve, hole_support
+from recon.masks.vote import Hull, carve, hole_support
 from recon.support import PlaneSettings, SupportPlane, aim_point, scene_scale
 
 log = logging.getLogger(__name__)
@@ -84,6 +87,8 @@ class SegmentSettings:
     diff_window: int = 2  # radius of C's edge-following window (px at the working size)
     colour_weight: float = 0.5  # weight of the colour models' log-likelihood ratio ...
     foot_colour_weight: float = 1.0  # ... and at the foot, where nothing else tells the object from the table
+    colour_novelty: float = 0.05  # a plain colour deep inside the silhouette is the object's when the table's colour
+    # model explains it less than this share of the table's own pixels (graphcut.colour_log_ratio)
     smoothness: float = 2.0  # weight of the contrast-sensitive pairwise term
     hole_tolerance: float = 0.05  # cross-check: share of the other views' misses a voxel survives
     min_standing: float = 0.02  # the hull's silhouette holds at least this share of pixels unlike the table
@@ -107,6 +112,8 @@ class SegmentSettings:
             raise ValueError(f"hull_resolution must be >= 16, got {self.hull_resolution}")
         if self.prior < 0 or self.table_weight < 0 or self.colour_weight < 0 or self.smoothness < 0:
             raise ValueError("prior, table_weight, colour_weight and smoothness must be >= 0")
+        if not 0 < self.colour_novelty < 1:
+            raise ValueError(f"colour_novelty must be in (0, 1), got {self.colour_novelty}")
 
 
 def _resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -166,9 +173,12 @@ def refine_view(rgb_linear: np.ndarray, silhouette: np.ndarray, table: np.ndarra
     z = np.where(tab, np.minimum(z, -settings.table_weight), z)
     if settings.colour_weight > 0:
         ring = active & ~inner
+        # the object's colours: where the plane test sees it differ from the table, and the plain
+        # pixels (where the test says nothing) whose colour the table does not show
         llr = colour_log_ratio(guide, sure_fg=inner & ~table & (logodds > 0),
                                sure_bg=(dilate(silhouette, 3 * margin_px) & ~silhouette & ~low) | (active & tab),
-                               where=ring, seed=seed)
+                               where=ring, seed=seed, plain_fg=inner & ~table & (logodds == 0),
+                               novelty=settings.colour_novelty)
         if llr is not None:
             # at the foot only the colours tell the object from the table
             z = z + np.where(low, settings.foot_colour_weight, settings.colour_weight) * llr
@@ -178,6 +188,35 @@ def refine_view(rgb_linear: np.ndarray, silhouette: np.ndarray, table: np.ndarra
     cost_bg = np.where(inner, 1e6, cost_bg)  # deep inside the silhouette: object
     m = graph_cut(cost_fg, cost_bg, guide, settings.smoothness, active)
     return components_touching(m, inner) if inner.any() else m
+
+
+def cross_check(masks: list[np.ndarray], cams: CameraSet, plane: SupportPlane, hull: Hull, band: float,
+                settings: SegmentSettings = SegmentSettings(), seeds: np.ndarray | None = None):
+    """Step 4: the refined ``masks`` (one (H, W) bool per camera of ``cams``) cut to a second
+    hull, carved from them in the box of the first ``hull``, and their holes filled where the
+    other views' hull is solid (:func:`recon.masks.vote.hole_support`; ``band``: the parallax
+    band, below which that hull is extruded). Returns the masks and the second hull (None when
+    nothing survives its vote: the masks are returned as they came).
+
+    The second hull is carved down to the plane: the refined masks are silhouettes, not the
+    plane test, so they tell the object from the table below the band too. (Extruded from the
+    band's top, as the first hull is, it cut off in every view whatever flares out below the
+    band: the lip of a bell.)"""
+    box_foot, box_half, box_height = hull.box_on(plane)
+    box = (box_foot, box_half + 2 * hull.step, box_height + 2 * hull.step)
+    framed = [np.where(m, 1, 0).astype(np.uint8) for m in masks]
+    hull2 = carve(framed, cams, plane, *box, settings.hull_resolution, settings.carve_fraction,
+                  seed_point=box_foot + 0.5 * box_height * plane.normal, seeds=seeds)
+    if hull2 is None:
+        return masks, None
+    masks = [m & dilate(hull2.project(cam), 1) for m, cam in zip(masks, cams, strict=True)]
+    with_holes = [i for i, m in enumerate(masks) if holes(m).any()]
+    if with_holes:
+        support = hole_support(masks, cams, plane, *box, settings.hull_resolution, settings.hole_tolerance,
+                               band=band, views=with_holes)
+        for i, s in support.items():
+            masks[i] = fill_holes_covered(masks[i], s)
+    return masks, hull2
 
 
 def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPlane,
@@ -308,19 +347,7 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
 
     # ---- step 4: cross-check with a hull of the refined masks ----
     t1 = time.perf_counter()
-    box_foot, box_half, box_height = hull.box_on(plane)
-    box = (box_foot, box_half + 2 * hull.step, box_height + 2 * hull.step)
-    framed = [np.where(m, 1, 0).astype(np.uint8) for m in masks]
-    hull2 = carve(framed, cams, plane, *box, settings.hull_resolution, settings.carve_fraction,
-                  seed_point=box_foot + 0.5 * box_height * plane.normal, band=band, seeds=seeds)
-    if hull2 is not None:
-        masks = [m & dilate(hull2.project(cam), 1) for m, cam in zip(masks, cams, strict=True)]
-        with_holes = [i for i, m in enumerate(masks) if holes(m).any()]
-        if with_holes:
-            support = hole_support(masks, cams, plane, *box, settings.hull_resolution, settings.hole_tolerance,
-                                   band=band, views=with_holes)
-            for i, s in support.items():
-                masks[i] = fill_holes_covered(masks[i], s)
+    masks, hull2 = cross_check(masks, cams, plane, hull, band, settings, seeds)
     timings["cross_check_s"] = time.perf_counter() - t1
     bad = []
     for cam, m in zip(cams, masks, strict=True):
@@ -349,4 +376,4 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
     return masks, info
 
 
-__all__ = ["SegmentError", "SegmentSettings", "beyond_lit_table", "refine_view", "segment_tabletop"]
+__all__ = ["SegmentError", "SegmentSettings", "beyond_lit_table", "cross_check", "refine_view", "segment_tabletop"]
