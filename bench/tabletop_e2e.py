@@ -479,12 +479,13 @@ def void_reference(r: dict) -> tuple[float | None, str | None]:
     return None, None
 
 
-def family_verdict(results: dict) -> str:
+def family_verdict(results: dict, given_cameras: bool = False) -> str:
     scenes = {n: r["scene"] for n, r in results.items() if "scene" in r}
     made = [n for n, m in scenes.items() if m["asset"]]
     text = (f"assets: {len(made)}/{len(scenes)} scenes"
             f"{' (none: ' + ', '.join(n for n in scenes if n not in made) + ')' if len(made) < len(scenes) else ''}")
-    for kind, what in (("void", "the void peer by SfM"), ("void_cams", "the void peer with the true cameras "
+    for kind, what in (("void", "the void peer" + (" (true cameras, as the scene)" if given_cameras else " by SfM")),
+                       ("void_cams", "the void peer with the true cameras "
                                                                          "(SfM registers too few of its views)")):
         compared = [n for n, r in results.items() if void_reference(r)[1] == kind
                     and r.get("scene", {}).get("final", {}).get("accuracy")]
@@ -534,7 +535,7 @@ def run_family(args, out: Path) -> int:
     size = sorted(set(sizes.values()))
     settings = (f"{'; '.join(size)}, preset {args.preset}, no cameras, no masks, no capture.yaml in the captures "
                 f"(SfM, masks computed, flash intensity estimated)")
-    verdict = family_verdict(done)
+    verdict = family_verdict(done, args.given_cameras)
     print(settings)  # noqa: T201
     print(text)  # noqa: T201
     print(verdict)  # noqa: T201
