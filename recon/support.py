@@ -12,7 +12,9 @@ distance above the plane (positive on the cameras' side).
 triangulated from known cameras): RANSAC over point triples, kept only when (a) the cameras
 all look at it from above (a table is photographed from one side; a void capture's object
 seen from all around is not a table), (b) it holds a good share of the points, and (c) it
-passes below the point the cameras aim at, with points standing above it there (the object).
+passes below the point the cameras aim at, with points standing above it there (the object),
+and (d) its points lie around the object's foot, not under the object (a flat part of an object
+alone is not a table).
 """
 
 from __future__ import annotations
@@ -176,10 +178,19 @@ class PlaneSettings:
     min_object_points: int = 8  # points standing above the plane near the aim point
     object_height: float = 0.03  # standing above means higher than this
     object_radius: float = 0.5  # near the aim point: within this horizontal distance
+    # A table is seen around the object's foot: its points lie outside the object's footprint
+    # (the object hides the table under it). A plane through the object itself (a flat face, the
+    # coplanar rim of a vase or bowl photographed alone) has its points under the object. The
+    # median horizontal distance of the plane's points from the foot must exceed this multiple
+    # of the object points' (measured: tables 2.2-4.8 on seven tabletop captures, planes through
+    # an object in the void 0.35 and 0.76; bench/tabletop_e2e.py --family, docs/tabletop.md).
+    min_spread: float = 1.0
     iterations: int = 2000
     seed: int = 0
 
     def __post_init__(self):
+        if not self.min_spread >= 0:
+            raise ValueError(f"min_spread must be >= 0, got {self.min_spread}")
         if not 0 < self.inlier_distance < 1:
             raise ValueError(f"inlier_distance must be in (0, 1), got {self.inlier_distance}")
         if not 0 < self.min_inlier_fraction <= 1 or not 0 < self.camera_fraction <= 1:
@@ -307,6 +318,13 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
     if above.sum() < settings.min_object_points:
         info["reason"] = (f"only {above.sum()} points stand above the plane near the point the cameras aim at "
                           f"(need >= {settings.min_object_points}): nothing stands on it (a hand-held object?)")
+        return None, info
+    spread = float(np.median(horiz[inl]) / max(np.median(horiz[above]), 1e-12 * scale))
+    info["spread"] = spread
+    if spread <= settings.min_spread:
+        info["reason"] = (f"the plane's {inl.sum()} points lie under the object, not around it (their median "
+                          f"distance from its foot is {spread:.2f}x the object points'): a flat part of the "
+                          "object, not a table it stands on")
         return None, info
     info["found"] = True
     info["reason"] = (f"plane with {inl.sum()} of {len(pts)} points, {above.sum()} points above it near the "

@@ -128,6 +128,27 @@ def test_no_plane_without_an_object_on_it():
     assert plane is None and "only 10 3D points" in info["reason"]
 
 
+def test_no_plane_through_a_flat_part_of_an_object_alone():
+    """An object alone (no table) with a flat part: a dome on a flat disc of its own size, seen
+    from 20-45 degrees above. The disc holds a third of the points, the cameras look down on it
+    and the dome stands on it, but its points lie under the object, not around it: not a table.
+    The same object on a table of 3x its radius still finds the table."""
+    rng = np.random.default_rng(4)
+    r = 0.8 * np.sqrt(rng.random(400))
+    a = rng.uniform(0, 2 * np.pi, 400)
+    disc = np.stack([r * np.cos(a), r * np.sin(a), np.full(400, -0.8)], 1)
+    d = rng.normal(size=(1600, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    dome = 0.8 * d[d[:, 2] > 0.05] + [0.0, 0.0, -0.8]
+    pts = np.concatenate([disc, dome])
+    plane, info = fit_support_plane(pts, _ring())
+    assert plane is None and "under the object" in info["reason"], info
+    assert info["spread"] < 1.0
+    plane, info = fit_support_plane(np.concatenate([_scene(rng, n_object=0, n_outliers=0), dome]), _ring())
+    assert info["found"] and info["spread"] > 2.0, info
+    assert np.degrees(np.arccos(plane.normal @ [0, 0, 1])) < 0.5
+
+
 def test_settings_are_checked():
     with pytest.raises(ValueError, match="inlier_distance"):
         PlaneSettings(inlier_distance=0.0)
