@@ -69,13 +69,6 @@ def _killed_run(root, out, kill_after, settings=TINY):
     return p.stderr
 
 
-# KNOWN BUG, open (issue 30 closing note, session 15): about 1 run in 6-10 the resumed run ends
-# with 185 vertices where the uninterrupted one has 187, the same two results every time it
-# happened (idle with 2 test processes, and serially under load). The difference is made at the
-# stage-1 remesh of the run killed and resumed in a subprocess; the cause is not found. Marked
-# non-strict so that it still runs and reports XPASS/XFAIL in every suite, until it is fixed.
-@pytest.mark.xfail(strict=False, reason="resume across the stage-1 remesh sometimes differs (185 vs 187 "
-                   "vertices); open bug, see the comment above")
 def test_outputs_resume_after_kill_and_match(capture, tmp_path, drjit_single_thread):
     """Killed twice and resumed: the outputs equal an uninterrupted run's bit for bit. drjit on
     one thread here and in the killed runs (KILLER): float atomics in the renderer's backward
