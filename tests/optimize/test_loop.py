@@ -88,17 +88,22 @@ def test_outputs_resume_after_kill_and_match(capture, tmp_path, drjit_single_thr
     for name in ("mesh.obj", "diffuse.exr", "specular.exr", "roughness.exr", "log.jsonl", "summary.json"):
         assert (a / name).is_file() and (b / name).is_file()
     assert (b / "checkpoints" / "last.pt").is_file()
-    ma, mb = read_obj(a / "mesh.obj"), read_obj(b / "mesh.obj")
-    np.testing.assert_array_equal(ma.v_pos, mb.v_pos)
-    np.testing.assert_array_equal(ma.t_tex_idx, mb.t_tex_idx)
-    for k in ("diffuse", "specular", "roughness"):
-        np.testing.assert_array_equal(read_exr(a / f"{k}.exr"), read_exr(b / f"{k}.exr"))
+    # the iterations first: a difference shows where the runs parted (iterations 0-1 are the first
+    # killed run's, 2-4 the second's, the rest this process's), the stages' meshes after
     la = [json.loads(x) for x in (a / "log.jsonl").read_text().splitlines()]
     lb = [json.loads(x) for x in (b / "log.jsonl").read_text().splitlines()]
     assert len(la) == len(lb) == 8
     for ra, rb in zip(la, lb, strict=True):
         assert {k: v for k, v in ra.items() if not k.startswith("t_")} == {
-            k: v for k, v in rb.items() if not k.startswith("t_")}
+            k: v for k, v in rb.items() if not k.startswith("t_")}, (ra["stage"], ra["iteration"])
+    sa, sb = (json.loads((d / "summary.json").read_text()) for d in (a, b))
+    assert [s["vertices"] for s in sa["stages"]] == [s["vertices"] for s in sb["stages"]]
+    assert sa["light"] == sb["light"]
+    ma, mb = read_obj(a / "mesh.obj"), read_obj(b / "mesh.obj")
+    np.testing.assert_array_equal(ma.v_pos, mb.v_pos)
+    np.testing.assert_array_equal(ma.t_tex_idx, mb.t_tex_idx)
+    for k in ("diffuse", "specular", "roughness"):
+        np.testing.assert_array_equal(read_exr(a / f"{k}.exr"), read_exr(b / f"{k}.exr"))
     assert got["final_losses"] == ref["final_losses"]
     # outputs: the contract's maps and a clean mesh
     d = read_exr(a / "diffuse.exr")
