@@ -4,7 +4,7 @@ The family (``SCENES``; ``python -m recon synth`` settings, :mod:`recon.synth`):
 colours and brightness are close to the table's (``wood`` palette), plain glazes without texture,
 glossy, dark, tall, low, concave and handled shapes, a wall and room lamps in a dim room, views
 cut by the frame's edge, phone JPEGs (tone curve, vignetting, auto-exposure, a flash beside the
-lens, ambient light) and DNGs, 512 and 1008 px wide, and an object on a display stand (no table).
+lens, ambient light) and DNGs, 512, 1008 and 1600 px wide, and an object on a display stand (no table).
 
 For each scene:
 
@@ -73,6 +73,10 @@ SCENES: dict[str, dict] = {
     # larger photos of a textured object in the table's colours, phone JPEG
     "wood-bell-1008": {**TABLE, **PHONE, "object": "bell", "palette": "wood", "n_views": 48, "width": 1008,
                        "height": 756, "table_texture_size": 2048, "seed": 9},
+    # the same kind of capture at a phone's full-width preview size (1600 px): the masks' scale-dependent
+    # parts (the band near the table, the graph cut's neighbourhoods, the closing) at 3x the pixels
+    "wood-bell-1600": {**TABLE, **PHONE, "object": "bell", "palette": "wood", "n_views": 40, "width": 1600,
+                       "height": 1200, "table_texture_size": 2048, "seed": 11},
     # no table: the object on a display stand (a thin pole, a white base) in a dim room with a wall
     "stand-blob": {**TABLE, **PHONE, "scene": "stand", "object": "blob", "palette": "glaze",
                    "elevation_range": (5.0, 65.0), "wall": 0.4, "lamps": 0.15, "seed": 10},
