@@ -29,6 +29,7 @@ import json
 import logging
 import os
 import time
+from collections import deque
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -38,6 +39,21 @@ from recon.io.atomic import atomic_dir
 from recon.io.mesh import Mesh, MeshError, read_mesh, write_obj
 
 log = logging.getLogger(__name__)
+
+# xatlas 0.0.11 can hang forever when an Atlas is destroyed: ~TaskScheduler sets a worker's wakeup
+# flag and notifies its condition variable without holding the worker's mutex, then joins it. A
+# worker that has just finished the atlas's tasks and is between checking the flag and going to
+# sleep misses that notification and never wakes (a lost wakeup; gdb: the main thread in
+# std::thread::join under xatlas::Destroy, the worker in condition_variable::wait). Destroying the
+# atlas right after generate() hits that window on a busy machine (the unit suite beside two busy
+# processes hung there once; a loop of pack_atlas on a small sphere beside them hung in 1 of 3
+# one-minute runs, about 5,000 calls each). Atlases are therefore destroyed late: each one is kept
+# here and dropped only when _RETIRED_ATLASES more have been made, after its workers went back to
+# sleep (0 hangs in 4 such runs, about 7,000 calls each). This makes the race less likely, it does
+# not remove it: the fix belongs in xatlas (set the flag with the worker's mutex held). The cost is
+# up to four idle atlases (their meshes and charts, one sleeping thread per extra core each).
+_RETIRED_ATLASES = 4
+_retired: deque = deque(maxlen=_RETIRED_ATLASES)
 
 
 class UVError(ValueError):
@@ -174,6 +190,7 @@ def pack_atlas(v_pos: np.ndarray, t_pos_idx: np.ndarray, texture_size: int, padd
             if tpu > 0:
                 pack.texels_per_unit = tpu
             atlas.generate(xatlas.ChartOptions(), pack)
+            _retired.append(atlas)  # destroyed later, not at the next rebinding (see _RETIRED_ATLASES)
             w, h, pages, charts = int(atlas.width), int(atlas.height), int(atlas.atlas_count), int(atlas.chart_count)
             # one page only: with texels_per_unit set, xatlas may spill charts onto a second page
             if max(w, h) <= T and pages == 1:

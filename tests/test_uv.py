@@ -167,3 +167,19 @@ def test_atlas_grows_when_the_charts_cannot_fit(caplog):
         ruv.unwrap(mesh, ruv.UVSettings(texture_size=256, padding=4, max_texture_size=256))
     with pytest.raises(ValueError, match="max_texture_size"):
         ruv.UVSettings(texture_size=512, max_texture_size=256)
+
+
+def test_atlases_are_destroyed_late_and_boundedly():
+    """xatlas can hang when an atlas is destroyed right after generate() (a lost wakeup in its
+    ~TaskScheduler: recon.uv._RETIRED_ATLASES). pack_atlas keeps each atlas it made, so none is
+    destroyed when the function returns, and drops the oldest once _RETIRED_ATLASES newer ones
+    exist (the memory it holds stays bounded)."""
+    m = icosphere(2)
+    ruv.pack_atlas(m.v_pos, m.t_pos_idx, 64, 1, fill=0.5)
+    last = ruv._retired[-1]
+    ruv.pack_atlas(m.v_pos, m.t_pos_idx, 64, 1, fill=0.5)
+    assert ruv._retired[-1] is not last and any(a is last for a in ruv._retired)
+    for _ in range(ruv._RETIRED_ATLASES + 2):
+        ruv.pack_atlas(m.v_pos, m.t_pos_idx, 64, 1, fill=0.5)
+    assert len(ruv._retired) == ruv._RETIRED_ATLASES
+    assert not any(a is last for a in ruv._retired)
