@@ -49,9 +49,10 @@ log = logging.getLogger(__name__)
 # processes hung there once; a loop of pack_atlas on a small sphere beside them hung in 1 of 3
 # one-minute runs, about 5,000 calls each). Atlases are therefore destroyed late: each one is kept
 # here and dropped only when _RETIRED_ATLASES more have been made, after its workers went back to
-# sleep (0 hangs in 5 such runs, about 6,400-7,200 calls each: 3 keeping 8 atlases, 2 keeping 4). This makes the race less likely, it does
-# not remove it: the fix belongs in xatlas (set the flag with the worker's mutex held). The cost is
-# up to four idle atlases (their meshes and charts, one sleeping thread per extra core each).
+# sleep (0 hangs in 5 such runs of about 6,400-7,200 calls: 3 keeping 8 atlases, 2 keeping 4).
+# This makes the race less likely, it does not remove it: the fix belongs in xatlas (set the flag
+# with the worker's mutex held). The cost is up to four idle atlases (their meshes and charts, one
+# sleeping thread per extra core each).
 _RETIRED_ATLASES = 4
 _retired: deque = deque(maxlen=_RETIRED_ATLASES)
 
