@@ -47,14 +47,24 @@ log = logging.getLogger(__name__)
 # std::thread::join under xatlas::Destroy, the worker in condition_variable::wait). Destroying the
 # atlas right after generate() hits that window on a busy machine (the unit suite beside two busy
 # processes hung there once; a loop of pack_atlas on a small sphere beside them hung in 1 of 3
-# one-minute runs, about 5,000 calls each). Atlases are therefore destroyed late: each one is kept
-# here and dropped only when _RETIRED_ATLASES more have been made, after its workers went back to
-# sleep (0 hangs in 5 such runs of about 6,400-7,200 calls: 3 keeping 8 atlases, 2 keeping 4).
-# This makes the race less likely, it does not remove it: the fix belongs in xatlas (set the flag
-# with the worker's mutex held). The cost is up to four idle atlases (their meshes and charts, one
-# sleeping thread per extra core each).
-_RETIRED_ATLASES = 4
-_retired: deque = deque(maxlen=_RETIRED_ATLASES)
+# one-minute runs, about 5,000 calls each). Atlases are therefore destroyed late, by _retire: each
+# is kept until it is _RETIRE_AGE_S old, when its workers have long gone back to sleep (the window
+# is a few instructions; a preempted worker on a loaded machine waits a few scheduler slices, tens
+# of milliseconds), and at most _RETIRED_ATLASES are kept (a tight loop drops the oldest early).
+# This makes the race unlikely, it does not remove it: the fix belongs in xatlas (set the flag with
+# the worker's mutex held). The cost is the kept atlases (their meshes and charts, one sleeping
+# thread per extra core each).
+_RETIRE_AGE_S = 0.5
+_RETIRED_ATLASES = 16
+_retired: deque = deque()  # (time retired, atlas), oldest first
+
+
+def _retire(atlas) -> None:
+    """Keep ``atlas`` alive; destroy the kept ones that are old enough, or beyond the count."""
+    now = time.monotonic()
+    _retired.append((now, atlas))
+    while _retired and (now - _retired[0][0] >= _RETIRE_AGE_S or len(_retired) > _RETIRED_ATLASES):
+        _retired.popleft()
 
 
 class UVError(ValueError):
@@ -191,7 +201,7 @@ def pack_atlas(v_pos: np.ndarray, t_pos_idx: np.ndarray, texture_size: int, padd
             if tpu > 0:
                 pack.texels_per_unit = tpu
             atlas.generate(xatlas.ChartOptions(), pack)
-            _retired.append(atlas)  # destroyed later, not at the next rebinding (see _RETIRED_ATLASES)
+            _retire(atlas)  # destroyed later, not at the next rebinding (see _RETIRE_AGE_S)
             w, h, pages, charts = int(atlas.width), int(atlas.height), int(atlas.atlas_count), int(atlas.chart_count)
             # one page only: with texels_per_unit set, xatlas may spill charts onto a second page
             if max(w, h) <= T and pages == 1:

@@ -169,17 +169,26 @@ def test_atlas_grows_when_the_charts_cannot_fit(caplog):
         ruv.UVSettings(texture_size=512, max_texture_size=256)
 
 
-def test_atlases_are_destroyed_late_and_boundedly():
+def test_atlases_are_destroyed_late_and_boundedly(monkeypatch):
     """xatlas can hang when an atlas is destroyed right after generate() (a lost wakeup in its
-    ~TaskScheduler: recon.uv._RETIRED_ATLASES). pack_atlas keeps each atlas it made, so none is
-    destroyed when the function returns, and drops the oldest once _RETIRED_ATLASES newer ones
-    exist (the memory it holds stays bounded)."""
+    ~TaskScheduler: recon.uv._RETIRE_AGE_S). pack_atlas keeps each atlas it made, so none is
+    destroyed when the function returns; a kept atlas goes once it is _RETIRE_AGE_S old, or once
+    _RETIRED_ATLASES newer ones exist (the memory held stays bounded). The clock is set by hand."""
+    clock = [1000.0]
+    monkeypatch.setattr(ruv.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(ruv, "_retired", type(ruv._retired)())
     m = icosphere(2)
-    ruv.pack_atlas(m.v_pos, m.t_pos_idx, 64, 1, fill=0.5)
-    last = ruv._retired[-1]
-    ruv.pack_atlas(m.v_pos, m.t_pos_idx, 64, 1, fill=0.5)
-    assert ruv._retired[-1] is not last and any(a is last for a in ruv._retired)
-    for _ in range(ruv._RETIRED_ATLASES + 2):
+    n = ruv.pack_atlas(m.v_pos, m.t_pos_idx, 64, 1, fill=0.5)[2]["attempts"]  # one atlas per attempt
+    first = [a for _, a in ruv._retired]
+    assert len(first) == n
+    clock[0] += 0.4 * ruv._RETIRE_AGE_S
+    n2 = ruv.pack_atlas(m.v_pos, m.t_pos_idx, 64, 1, fill=0.5)[2]["attempts"]
+    kept = [a for _, a in ruv._retired]
+    assert len(kept) == n + n2 and all(a is b for a, b in zip(first, kept))  # young: kept
+    clock[0] += 0.7 * ruv._RETIRE_AGE_S  # the first call's now 1.1 ages old, the second's 0.7
+    n3 = ruv.pack_atlas(m.v_pos, m.t_pos_idx, 64, 1, fill=0.5)[2]["attempts"]
+    kept = [a for _, a in ruv._retired]
+    assert len(kept) == n2 + n3 and not any(a is b for a in kept for b in first)
+    for _ in range(ruv._RETIRED_ATLASES + 3):  # a tight loop: the count bounds them
         ruv.pack_atlas(m.v_pos, m.t_pos_idx, 64, 1, fill=0.5)
     assert len(ruv._retired) == ruv._RETIRED_ATLASES
-    assert not any(a is last for a in ruv._retired)
