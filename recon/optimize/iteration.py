@@ -11,6 +11,7 @@ self-intersection test runs in a worker thread while the next iteration renders.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass
@@ -65,6 +66,7 @@ class Stage:
     proposed: np.ndarray | None = None  # positions stepped to, not yet checked
     proposed_record: dict | None = None  # log record of the iteration that proposed them
     resting: np.ndarray | None = None  # (V,) bool, the base on the support plane (held on it)
+    foot_out: float | None = None  # share of the mask pixels left out at the object's foot (recon.optimize.foot)
 
 
 def map_params(settings: OptimizeSettings) -> dict:
@@ -125,9 +127,17 @@ def build_stage(run: Run, index, stage_settings, h, mesh, v_init, covered, map_v
         if settings.optim.guard else None
     )
     targets = run.views.at(settings.stage_image_size(stage_settings))
+    foot_out = None
+    if run.foot is not None:
+        w = run.foot.weights(targets.cameras, targets.masks)
+        targets = dataclasses.replace(targets, weights=targets.weights * torch.from_numpy(w)[..., None])
+        inside = targets.masks > 0.5
+        foot_out = float(((w == 0) & inside).sum()) / max(float(inside.sum()), 1.0)
+        log.info("stage %d: %.1f %% of the mask pixels (%d pixels in all) at the object's foot left out of the image "
+                 "term (tabletop masks cannot tell it from the table there)", index, 100 * foot_out, int((w == 0).sum()))
     renderer = make_renderer(settings, mesh)
     return Stage(index, stage_settings, h, bbox_scale, mesh, v_init, covered, topo, geom, maps, opt_geom, opt_tex, ls,
-                  guard, renderer, targets)
+                  guard, renderer, targets, foot_out=foot_out)
 
 
 def _positions(st: Stage) -> torch.Tensor:

@@ -41,6 +41,7 @@ from recon.io.mesh import Mesh, read_mesh, write_obj
 from recon.optimize import checkpoint as ckpt
 from recon.optimize import objective
 from recon.optimize.cameras import CameraFit, output_cameras, select_refinement
+from recon.optimize.foot import foot_zone
 from recon.optimize.guard import self_intersecting_faces
 from recon.optimize.heldout import split_holdout
 from recon.optimize.imaging import ImagingSettings, material_scorer_under, refit_under
@@ -187,8 +188,14 @@ def _base_run(inputs: _Inputs, cams: CameraSet, settings: OptimizeSettings, sour
         if np.any(plane.height(init.v_pos) < -0.01 * bbox_scale):
             log.warning("%s: the initial mesh reaches %.3g below the support plane (%s); those vertices are "
                         "moved onto it", inputs.init_mesh_obj, -plane.height(init.v_pos).min(), inputs.plane_json)
+    masks_json = Path(inputs.plane_json).parent / "masks.json" if plane is not None else None
+    foot = foot_zone(masks_json, plane, init, settings.loss.uncertain_foot)
+    if foot is not None:
+        log.info("tabletop masks (%s): the foot's pixels near a silhouette, up to %.3g above the table, are left out "
+                 "of the image term in %d views", masks_json, foot.height, len(foot.stems))
     files = [inputs.cameras_json, inputs.init_mesh_obj, *inputs.images, *(inputs.masks or []),
-             *(inputs.saturation_masks or []), inputs.plane_json if plane is not None else None]
+             *(inputs.saturation_masks or []), inputs.plane_json if plane is not None else None,
+             masks_json if foot is not None else None]
     fp = ckpt.fingerprint(settings.to_dict(), [str(f) if f is not None else None for f in files])
     tone_scale = views.median_foreground
     light_scale = _light_scale(settings, cams, views, init, inputs.cameras_json)
@@ -196,7 +203,7 @@ def _base_run(inputs: _Inputs, cams: CameraSet, settings: OptimizeSettings, sour
 
     base = Run(settings, tuple(stages), views, heldout, bbox_scale, weights, tone_scale, light, ckpt_dir, fp,
                plane=plane, light_scale=light_scale, area_init=float(init.area()),
-               exposure=recorded_exposures(inputs.images))
+               exposure=recorded_exposures(inputs.images), foot=foot)
     if settings.imaging.loop != "off":
         if heldout is None:
             log.warning("imaging.loop: %s needs held-out views (at least 6 views); the loop renders the ideal "

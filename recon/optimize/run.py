@@ -46,6 +46,7 @@ from recon.support import SupportPlane
 
 if TYPE_CHECKING:
     from recon.optimize.cameras import CameraFit
+    from recon.optimize.foot import FootZone
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +77,7 @@ class Run:
     light_scale: LightScale | None = None  # where ``light`` came from; the initial diffuse albedo
     area_init: float = 0.0  # the initial mesh's area (the collapse check)
     exposure: dict | None = None  # stem -> the recorded (EXIF) exposure linearize divided out (the tone curve's domain)
+    foot: "FootZone | None" = None  # tabletop masks' doubtful foot pixels, out of the image term (recon.optimize.foot)
 
 
 @dataclass
@@ -246,6 +248,7 @@ def _stage_info(st: Stage) -> dict:
         "vertices": int(len(st.mesh.v_pos)),
         "faces": int(len(st.mesh.t_pos_idx)),
         "largesteps_lambda": st.ls.lam if st.ls is not None else None,
+        "foot_pixels_out": st.foot_out,
     }
 
 

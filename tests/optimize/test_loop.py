@@ -292,6 +292,35 @@ def test_support_plane_is_never_crossed(capture, tmp_path):
     assert sum(r["plane_projected"] for r in log) > 0
     free_log = [json.loads(x) for x in (tmp_path / "free" / "log.jsonl").read_text().splitlines()]
     assert all(r["plane_projected"] == 0 for r in free_log)
+    # the masks were given (no masks.json of the tabletop method beside plane.json): all trusted
+    summary = json.loads((tmp_path / "plane" / "summary.json").read_text())
+    assert all(st["foot_pixels_out"] is None for st in summary["stages"])
+
+
+def test_tabletop_masks_leave_the_foot_out(capture, tmp_path):
+    """With tabletop masks (masks.json beside plane.json says so, with its parallax band) the
+    pixels near the silhouettes at the foot leave the image term (recon.optimize.foot): the
+    summary gives their share per stage; views whose masks were given keep them all."""
+    from recon.support import SupportPlane, save_plane
+
+    root, _ = capture
+    images, masks, sats, cams, init = _inputs(root)
+    z0 = read_mesh(init).v_pos[:, 2].min()
+    save_plane(tmp_path / "plane.json", SupportPlane(np.array([0.0, 0.0, 1.0]), -z0))
+    stems = [Path(p).stem for p in images]
+    views = {s: {"source": "tabletop"} for s in stems}
+    (tmp_path / "masks.json").write_text(json.dumps({"method": "tabletop", "views": views,
+                                                     "segment": {"hull": {"parallax_band": 0.1, "height": 1.0}}}))
+    s = replace(TINY, stages=(StageSettings(0.12, 32, 2),))
+    got = optimize_capture(images, masks, sats, cams, init, tmp_path / "t", s, progress=False,
+                           plane_json=tmp_path / "plane.json")
+    assert 0.0 < got["stages"][0]["foot_pixels_out"] < 0.3
+    for v in views.values():
+        v["source"] = "given"
+    (tmp_path / "masks.json").write_text(json.dumps({"method": "given", "views": views}))
+    got = optimize_capture(images, masks, sats, cams, init, tmp_path / "g", s, progress=False,
+                           plane_json=tmp_path / "plane.json")
+    assert got["stages"][0]["foot_pixels_out"] is None
 
 
 def test_imaging_loop_resumes_after_kill_and_matches(capture, tmp_path, drjit_single_thread):

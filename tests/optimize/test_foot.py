@@ -1,0 +1,102 @@
+"""The foot zone of tabletop masks (recon.optimize.foot): which pixels leave the image term."""
+
+import json
+
+import numpy as np
+import pytest
+
+from recon.io.cameras import Camera, look_at
+from recon.io.mesh import Mesh
+from recon.optimize.foot import FootZone, foot_zone
+from recon.support import SupportPlane
+from recon.synth.shapes import icosphere
+
+PLANE = SupportPlane.through([0, 0, 0], [0, 0, 1])
+W, H = 160, 120
+
+
+def _ball() -> Mesh:
+    """A ball of radius 1 resting on the plane z = 0: it overhangs its foot everywhere."""
+    m = icosphere(4)
+    return Mesh(m.v_pos / np.linalg.norm(m.v_pos, axis=1, keepdims=True) + [0, 0, 1], m.t_pos_idx)
+
+
+def _camera(stem: str, elevation_deg: float, dist: float = 6.0) -> Camera:
+    e = np.radians(elevation_deg)
+    eye = [dist * np.cos(e), 0.0, 1.0 + dist * np.sin(e)]
+    K = np.array([[150.0, 0, W / 2], [0, 150.0, H / 2], [0, 0, 1]])
+    return Camera(f"images/{stem}.png", W, H, K, look_at(eye, [0, 0, 1.0]))
+
+
+def _silhouette(mesh: Mesh, cam: Camera) -> np.ndarray:
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.v_pos.astype(np.float32)), o3d.core.Tensor(mesh.t_pos_idx.astype(np.uint32)))
+    jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    d = (np.stack([jj.ravel(), ii.ravel(), np.ones(jj.size)], 1) @ np.linalg.inv(cam.K).T) @ cam.world_to_camera[:3, :3]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    rays = np.concatenate([np.broadcast_to(cam.center, d.shape), d], 1).astype(np.float32)
+    return np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()).reshape(H, W)
+
+
+def _hull(ball: Mesh, band: float) -> Mesh:
+    """The tabletop hull of the ball: below the band, the section at its top extruded down to the
+    table (a skirt under the overhang, as recon.masks.vote.carve makes it)."""
+    v = ball.v_pos.copy()
+    r = np.sqrt(1.0 - (1.0 - band) ** 2)
+    low = v[:, 2] < band
+    xy = np.linalg.norm(v[low, :2], axis=1, keepdims=True)
+    v[low, :2] = np.where(xy > 1e-9, v[low, :2] / np.maximum(xy, 1e-12) * r, 0.0)
+    return Mesh(v, ball.t_pos_idx)
+
+
+def test_foot_pixels_near_the_silhouette_leave_the_loss_and_the_rest_stay():
+    ball = _ball()
+    hull = _hull(ball, 0.2)
+    cams = [_camera("low", 10.0), _camera("high", 60.0), _camera("given", 10.0)]
+    true = np.stack([_silhouette(ball, c) for c in cams])
+    masks = np.stack([_silhouette(hull, c) for c in cams])  # the masks hold the skirt
+    zone = FootZone(PLANE, 0.2, hull, frozenset({"low", "high"}))
+    w = zone.weights(cams, masks.astype(np.float32))
+    assert w.shape == masks.shape and w.dtype == np.float32 and set(np.unique(w)) <= {0.0, 1.0}
+    low = w[0]
+    skirt = masks[0] & ~true[0]
+    assert skirt.sum() > 20
+    assert (low[skirt] == 0).mean() > 0.9  # the table the masks took in under the overhang: out
+    # the ball's top half, its middle row and the background far from it stay in
+    rows = np.flatnonzero(masks[0].any(1))
+    assert np.all(low[:(rows[0] + rows[-1]) // 2 + 1] == 1)
+    assert low[:, :10].min() == 1 and low[:, -10:].min() == 1 and np.all(low[rows[-1] + 12:] == 1)
+    # from above the foot hides under the ball: most of the mask stays in
+    assert (w[1][masks[1]] == 1).mean() > 0.9
+    # a view whose masks were given is trusted whole
+    assert np.all(w[2] == 1)
+
+
+def test_cameras_level_with_the_table_give_no_nan():
+    ball = _ball()
+    cams = [_camera("level", 0.0, dist=4.0), _camera("below", -5.0, dist=4.0)]
+    masks = np.stack([_silhouette(ball, c) for c in cams]).astype(np.float32)
+    w = FootZone(PLANE, 0.2, ball, frozenset({"level", "below"})).weights(cams, masks)
+    assert np.all(np.isfinite(w)) and (w == 0).any()
+
+
+def test_zone_only_for_tabletop_masks_with_a_band(tmp_path):
+    ball = _ball()
+    p = tmp_path / "masks.json"
+    summary = {"method": "tabletop", "views": {"a": {"source": "tabletop"}, "b": {"source": "given"}},
+               "segment": {"hull": {"parallax_band": 0.1, "height": 0.5}}}  # another frame
+    p.write_text(json.dumps(summary))
+    z = foot_zone(p, PLANE, ball, 1.5)
+    # the band's share of the height (0.2) of the ball's height (2) above the table, times 1.5
+    assert z is not None and z.stems == {"a"} and z.height == pytest.approx(0.6)
+    assert foot_zone(p, None, ball, 1.0) is None  # no table
+    assert foot_zone(p, PLANE, ball, 0.0) is None  # off
+    assert foot_zone(tmp_path / "absent.json", PLANE, ball, 1.0) is None
+    summary["views"] = {"a": {"source": "given"}}
+    p.write_text(json.dumps(summary))
+    assert foot_zone(p, PLANE, ball, 1.0) is None  # every mask given
+    summary.update(views={"a": {"source": "tabletop"}}, segment=None)
+    p.write_text(json.dumps(summary))
+    assert foot_zone(p, PLANE, ball, 1.0) is None  # no band recorded
