@@ -44,14 +44,15 @@ class FootZone:
     height: float
     mesh: Mesh
     stems: frozenset
+    weight: float = 0.0  # the doubtful pixels' weight
 
     def weights(self, cameras, masks: np.ndarray) -> np.ndarray:
-        """(N, h, w) float32: 0 on the doubtful foot pixels of the views in ``stems``, else 1."""
+        """(N, h, w) float32: ``weight`` on the doubtful foot pixels of the views in ``stems``, else 1."""
         return foot_weights(self, cameras, masks)
 
 
 def foot_zone(masks_json: str | os.PathLike | None, plane: SupportPlane | None, mesh: Mesh,
-              factor: float) -> FootZone | None:
+              factor: float, weight: float = 0.0) -> FootZone | None:
     """The zone from the poses stage's ``masks.json`` (beside ``plane.json``), or None: no plane,
     no tabletop masks, ``factor`` 0 (off), or no band recorded. The masks' band is recorded in
     the frame they were made in, with the height of their hull: the zone is the same share of
@@ -67,7 +68,7 @@ def foot_zone(masks_json: str | os.PathLike | None, plane: SupportPlane | None, 
     top = float(np.max(plane.height(mesh.v_pos)))
     if not top > 0:
         return None
-    return FootZone(plane, float(factor) * min(float(band) / float(height), 1.0) * top, mesh, stems)
+    return FootZone(plane, float(factor) * min(float(band) / float(height), 1.0) * top, mesh, stems, float(weight))
 
 
 def _disk(r: int) -> np.ndarray:
@@ -117,5 +118,5 @@ def foot_weights(zone: FootZone, cameras, masks: np.ndarray) -> np.ndarray:
         r = int(np.clip(np.ceil(zone.height * cam.K[0, 0] / max(depth, 1e-12)), 1, max(H, W)))
         both = ((masks[k] > 0.5) & hit.reshape(H, W)).astype(np.uint8)
         interior = cv2.erode(both, _disk(r), borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
-        out[k][in_zone & ~interior] = 0.0
+        out[k][in_zone & ~interior] = zone.weight
     return out

@@ -132,9 +132,9 @@ def build_stage(run: Run, index, stage_settings, h, mesh, v_init, covered, map_v
         w = run.foot.weights(targets.cameras, targets.masks)
         targets = dataclasses.replace(targets, weights=targets.weights * torch.from_numpy(w)[..., None])
         inside = targets.masks > 0.5
-        foot_out = float(((w == 0) & inside).sum()) / max(float(inside.sum()), 1.0)
+        foot_out = float(((w < 1) & inside).sum()) / max(float(inside.sum()), 1.0)
         log.info("stage %d: %.1f %% of the mask pixels (%d pixels in all) at the object's foot left out of the image "
-                 "term (tabletop masks cannot tell it from the table there)", index, 100 * foot_out, int((w == 0).sum()))
+                 "term (tabletop masks cannot tell it from the table there)", index, 100 * foot_out, int((w < 1).sum()))
     renderer = make_renderer(settings, mesh)
     return Stage(index, stage_settings, h, bbox_scale, mesh, v_init, covered, topo, geom, maps, opt_geom, opt_tex, ls,
                   guard, renderer, targets, foot_out=foot_out)

@@ -189,7 +189,7 @@ def _base_run(inputs: _Inputs, cams: CameraSet, settings: OptimizeSettings, sour
             log.warning("%s: the initial mesh reaches %.3g below the support plane (%s); those vertices are "
                         "moved onto it", inputs.init_mesh_obj, -plane.height(init.v_pos).min(), inputs.plane_json)
     masks_json = Path(inputs.plane_json).parent / "masks.json" if plane is not None else None
-    foot = foot_zone(masks_json, plane, init, settings.loss.uncertain_foot)
+    foot = foot_zone(masks_json, plane, init, settings.loss.uncertain_foot, settings.loss.uncertain_foot_weight)
     if foot is not None:
         log.info("tabletop masks (%s): the foot's pixels near a silhouette, up to %.3g above the table, are left out "
                  "of the image term in %d views", masks_json, foot.height, len(foot.stems))

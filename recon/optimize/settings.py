@@ -222,6 +222,7 @@ class LossSettings:
     uncertain_foot : on a table with tabletop masks, the pixels near a silhouette that see the
         object's foot or the table beside it, up to this multiple of the masks' parallax band
         above the table, are left out of the image term (:mod:`recon.optimize.foot`); 0: off.
+    uncertain_foot_weight : those pixels' weight in the image term (0: left out).
     """
 
     w_render: float = 1.0
@@ -241,12 +242,15 @@ class LossSettings:
     use_normal_edge: bool = True
     use_material_priors: bool = True
     uncertain_foot: float = 1.5
+    uncertain_foot_weight: float = 0.0
 
     def __post_init__(self):
         _one_of(self, "laplacian", LAPLACIANS)
         if not 0 <= self.uncertain_foot <= 10:
             raise ValueError(f"uncertain_foot must be in [0, 10] (multiples of the masks' parallax band), got "
                              f"{self.uncertain_foot}")
+        if not 0 <= self.uncertain_foot_weight <= 1:
+            raise ValueError(f"uncertain_foot_weight must be in [0, 1], got {self.uncertain_foot_weight}")
         _one_of(self, "tone_map", TONE_MAPS)
         _positive(self, "w_render")
         for name in ("w_laplacian", "w_edge", "w_normal", "w_specular", "w_roughness", "w_camera"):

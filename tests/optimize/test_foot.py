@@ -72,6 +72,19 @@ def test_foot_pixels_near_the_silhouette_leave_the_loss_and_the_rest_stay():
     assert (w[1][masks[1]] == 1).mean() > 0.9
     # a view whose masks were given is trusted whole
     assert np.all(w[2] == 1)
+    # a weight instead of leaving them out (loss.uncertain_foot_weight)
+    w3 = FootZone(PLANE, 0.2, hull, frozenset({"low", "high"}), 0.3).weights(cams, masks.astype(np.float32))
+    assert np.array_equal(w3 == 1, w == 1) and set(np.unique(w3)) == {np.float32(0.3), 1.0}
+
+
+def test_settings_bounds():
+    from recon.optimize.settings import LossSettings
+
+    assert LossSettings().uncertain_foot == 1.5 and LossSettings().uncertain_foot_weight == 0.0
+    for bad in ({"uncertain_foot": -0.1}, {"uncertain_foot": 11.0}, {"uncertain_foot_weight": 1.5},
+                {"uncertain_foot_weight": float("nan")}):
+        with pytest.raises(ValueError, match="uncertain_foot"):
+            LossSettings(**bad)
 
 
 def test_cameras_level_with_the_table_give_no_nan():
