@@ -15,8 +15,11 @@ the optimizer grows a skirt between the bulge and the table instead of carving i
 mesh's) whose ray meets the initial mesh, or else the table, within the band (its height above
 the plane, its width around the mesh's foot). They get weight 0 in the image term, as clipped
 pixels do: neither covering nor uncovering them is rewarded, and the surface there follows the
-priors and the views that see it elsewhere. Only views whose masks the tabletop method made are
-touched: given masks are trusted, and a capture without a plane has no foot to doubt.
+priors and the views that see it elsewhere. A mask pixel there whose colour the table beside the
+foot does not show (its chromaticity farther than ``TABLE_SIGMAS`` from that of the zone's pixels
+outside the mask) is the object's and stays: without it the priors round a straight foot inward
+(a mug's: docs/tabletop.md). Only views whose masks the tabletop method made are touched: given
+masks are trusted, and a capture without a plane has no foot to doubt.
 """
 
 from __future__ import annotations
@@ -35,6 +38,11 @@ from recon.support import SupportPlane
 log = logging.getLogger(__name__)
 
 
+# a mask pixel at the foot whose chromaticity lies farther than this many standard deviations from
+# the table's beside the foot is the object's, whatever the masks' doubt: it stays in the image term
+TABLE_SIGMAS = 3.0
+
+
 @dataclass(frozen=True)
 class FootZone:
     """The foot's zone: heights up to ``height`` above ``plane``, within ``height`` (horizontally)
@@ -46,9 +54,11 @@ class FootZone:
     stems: frozenset
     weight: float = 0.0  # the doubtful pixels' weight
 
-    def weights(self, cameras, masks: np.ndarray) -> np.ndarray:
-        """(N, h, w) float32: ``weight`` on the doubtful foot pixels of the views in ``stems``, else 1."""
-        return foot_weights(self, cameras, masks)
+    def weights(self, cameras, masks: np.ndarray, images: np.ndarray | None = None) -> np.ndarray:
+        """(N, h, w) float32: ``weight`` on the doubtful foot pixels of the views in ``stems``, else 1.
+        With ``images`` (N, h, w, 3), a mask pixel whose colour the table beside the foot does not
+        show stays in (:func:`table_like`)."""
+        return foot_weights(self, cameras, masks, images)
 
 
 def foot_zone(masks_json: str | os.PathLike | None, plane: SupportPlane | None, mesh: Mesh,
@@ -76,7 +86,28 @@ def _disk(r: int) -> np.ndarray:
     return (x * x + y * y <= r * r).astype(np.uint8)
 
 
-def foot_weights(zone: FootZone, cameras, masks: np.ndarray) -> np.ndarray:
+def _chroma(rgb: np.ndarray) -> np.ndarray:
+    """(n, 2) chromaticity r, g of linear RGB (brightness, which the flash's falloff and the
+    grazing light under an overhang change, left out)."""
+    s = np.maximum(rgb.sum(-1, keepdims=True), 1e-6)
+    return (rgb / s)[:, :2]
+
+
+def table_like(table: np.ndarray, pixels: np.ndarray, k: float = TABLE_SIGMAS) -> np.ndarray:
+    """(m,) bool: ``pixels (m, 3)`` whose chromaticity lies within ``k`` standard deviations
+    (Mahalanobis) of the ``table (n, 3)`` pixels', or too dark to tell (under a twentieth of the
+    table's median brightness: their chromaticity is noise); all True when fewer than 20 table pixels."""
+    if len(table) < 20:
+        return np.ones(len(pixels), bool)
+    c = _chroma(table)
+    mu = c.mean(0)
+    cov = np.cov(c.T) + 1e-6 * np.eye(2)
+    x = _chroma(pixels) - mu
+    dark = pixels.sum(-1) < 0.05 * np.median(table.sum(-1))
+    return dark | (np.einsum("ni,ij,nj->n", x, np.linalg.inv(cov), x) <= k * k)
+
+
+def foot_weights(zone: FootZone, cameras, masks: np.ndarray, images: np.ndarray | None = None) -> np.ndarray:
     import cv2
     import open3d as o3d
     from scipy.spatial import cKDTree
@@ -118,5 +149,14 @@ def foot_weights(zone: FootZone, cameras, masks: np.ndarray) -> np.ndarray:
         r = int(np.clip(np.ceil(zone.height * cam.K[0, 0] / max(depth, 1e-12)), 1, max(H, W)))
         both = ((masks[k] > 0.5) & hit.reshape(H, W)).astype(np.uint8)
         interior = cv2.erode(both, _disk(r), borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
-        out[k][in_zone & ~interior] = zone.weight
+        doubt = in_zone & ~interior
+        if images is not None:
+            # a mask pixel in the zone is doubted only when it looks like the table: the table's
+            # colour from the zone's pixels outside the mask (the table beside the foot)
+            inside = doubt & (masks[k] > 0.5)
+            table = images[k][doubt & (masks[k] <= 0.5)]
+            keep = np.zeros_like(doubt)
+            keep[inside] = ~table_like(table, images[k][inside])
+            doubt &= ~keep
+        out[k][doubt] = zone.weight
     return out

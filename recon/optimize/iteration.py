@@ -129,7 +129,7 @@ def build_stage(run: Run, index, stage_settings, h, mesh, v_init, covered, map_v
     targets = run.views.at(settings.stage_image_size(stage_settings))
     foot_out = None
     if run.foot is not None:
-        w = run.foot.weights(targets.cameras, targets.masks)
+        w = run.foot.weights(targets.cameras, targets.masks, run.views.photos_at(settings.stage_image_size(stage_settings)))
         targets = dataclasses.replace(targets, weights=targets.weights * torch.from_numpy(w)[..., None])
         inside = targets.masks > 0.5
         foot_out = float(((w < 1) & inside).sum()) / max(float(inside.sum()), 1.0)

@@ -493,7 +493,8 @@ RECORDED_ORDER = (
     "camera_sigma_rotation_deg", "camera_sigma_translation", "camera_sigma_focal", "camera_sigma_principal",
     "camera_lr_rotation_deg", "camera_lr_translation", "camera_lr_focal", "camera_lr_principal",
     "camera_align_iterations", "camera_first_stage", "select_imaging", "imaging_terms", "flash_offset",
-    "tone_curve", "imaging_loop", "imaging_loop_stage", "imaging_loop_lr", "imaging_min_gain", "w_imaging")
+    "tone_curve", "imaging_loop", "imaging_loop_stage", "imaging_loop_lr", "imaging_min_gain", "w_imaging",
+    "uncertain_foot", "uncertain_foot_weight")
 """The flat names of :meth:`OptimizeSettings.to_dict`, in its order: the fields of the flat class
 before the sections (settings added later follow, in their sections' order)."""
 

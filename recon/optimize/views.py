@@ -83,7 +83,7 @@ class Views:
         if saturation_masks is not None and len(saturation_masks) != n:
             raise ViewsError(f"{len(saturation_masks)} saturation masks for {n} images; give one per image")
         by_stem = cameras.by_stem()
-        self.stems, self.cameras, imgs, msks, sats = [], [], [], [], []
+        self.stems, self.cameras, imgs, msks, sats, photos = [], [], [], [], [], []
         for k, path in enumerate(images):
             cam = by_stem.get(path.stem)
             if cam is None:
@@ -110,6 +110,7 @@ class Views:
             factor = min(1.0, max_size / max(W, H))
             c = cam.scaled(factor) if factor < 1 else cam
             imgs.append(_resize_area(rgb * m[:, :, None], c.width, c.height))
+            photos.append(_resize_area(rgb, c.width, c.height).astype(np.float16))
             msks.append(_resize_area(m, c.width, c.height))
             sats.append(_resize_area(s, c.width, c.height) > 0)
             self.stems.append(path.stem)
@@ -118,6 +119,7 @@ class Views:
         if len(sizes) != 1:
             raise ViewsError(f"all views must have the same size; got {sorted(sizes)}")
         self.images = np.stack(imgs)
+        self.photos = np.stack(photos)  # unmasked, float16: the table beside the object (recon.optimize.foot)
         self.masks = np.stack(msks)
         self.saturated = np.stack(sats)
         self.light_intensity = float(cameras.light_intensity)
@@ -149,6 +151,7 @@ class Views:
         out.stems = [self.stems[i] for i in idx]
         out.cameras = [self.cameras[i] for i in idx]
         out.images = self.images[idx].copy()
+        out.photos = self.photos[idx].copy()
         out.masks = self.masks[idx].copy()
         out.saturated = self.saturated[idx].copy()
         out.light_intensity = self.light_intensity
@@ -157,6 +160,14 @@ class Views:
         if not out.median_foreground > 0:
             out.median_foreground = self.median_foreground
         return out
+
+    def photos_at(self, size: int) -> np.ndarray:
+        """(N, h, w, 3) float32: the photos unmasked, at the size :meth:`at` gives."""
+        W, H = self.cameras[0].width, self.cameras[0].height
+        factor = min(1.0, size / max(W, H))
+        cams = [c.scaled(factor) if factor < 1 else c for c in self.cameras[:1]]
+        w, h = cams[0].width, cams[0].height
+        return np.stack([_resize_area(p.astype(np.float32), w, h) for p in self.photos])
 
     def at(self, size: int) -> ViewSet:
         """The targets with longest side ``size`` (or the stored size when that is smaller)."""

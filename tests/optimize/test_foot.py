@@ -72,9 +72,28 @@ def test_foot_pixels_near_the_silhouette_leave_the_loss_and_the_rest_stay():
     assert (w[1][masks[1]] == 1).mean() > 0.9
     # a view whose masks were given is trusted whole
     assert np.all(w[2] == 1)
+    # with the photos: the ball's own pixels at its foot (its colour, not the table's) stay in;
+    # the skirt, which shows the table, still leaves
+    table, ball_rgb = np.array([0.5, 0.35, 0.2], np.float32), np.array([0.2, 0.3, 0.6], np.float32)
+    rng = np.random.default_rng(0)
+    photos = np.where(true[..., None], ball_rgb, table) * rng.uniform(0.3, 1.0, true.shape + (1,)).astype(np.float32)
+    wc = zone.weights(cams, masks.astype(np.float32), photos)
+    assert (wc[0][skirt] == 0).mean() > 0.9
+    assert (w[0][true[0]] == 0).any() and np.all(wc[0][true[0]] == 1)
+    assert np.all(wc[w == 1] == 1)  # the colour test only keeps pixels
     # a weight instead of leaving them out (loss.uncertain_foot_weight)
     w3 = FootZone(PLANE, 0.2, hull, frozenset({"low", "high"}), 0.3).weights(cams, masks.astype(np.float32))
     assert np.array_equal(w3 == 1, w == 1) and set(np.unique(w3)) == {np.float32(0.3), 1.0}
+
+
+def test_table_like_by_chromaticity_not_brightness():
+    from recon.optimize.foot import table_like
+
+    rng = np.random.default_rng(1)
+    wood = np.array([0.5, 0.35, 0.2]) * rng.uniform(0.2, 1.0, (200, 1)) * (1 + 0.02 * rng.standard_normal((200, 3)))
+    pix = np.array([[0.05, 0.035, 0.02], [1.0, 0.7, 0.4], [0.2, 0.3, 0.6], [0.0, 0.0, 0.0]])
+    assert table_like(wood, pix).tolist() == [True, True, False, True]  # dim or bright wood; blue; too dark to tell
+    assert table_like(wood[:5], pix).all()  # too few table pixels to tell: all doubted
 
 
 def test_settings_bounds():
