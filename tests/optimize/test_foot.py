@@ -99,7 +99,7 @@ def test_table_like_by_chromaticity_not_brightness():
 def test_settings_bounds():
     from recon.optimize.settings import LossSettings
 
-    assert LossSettings().uncertain_foot == 1.5 and LossSettings().uncertain_foot_weight == 0.0
+    assert LossSettings().uncertain_foot == 0.0 and LossSettings().uncertain_foot_weight == 0.0  # off by default
     for bad in ({"uncertain_foot": -0.1}, {"uncertain_foot": 11.0}, {"uncertain_foot_weight": 1.5},
                 {"uncertain_foot_weight": float("nan")}):
         with pytest.raises(ValueError, match="uncertain_foot"):
