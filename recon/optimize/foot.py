@@ -15,7 +15,9 @@ the optimizer grows a skirt between the bulge and the table instead of carving i
 mesh's) whose ray meets the initial mesh, or else the table, within the band (its height above
 the plane, its width around the mesh's foot). They get weight 0 in the image term, as clipped
 pixels do: neither covering nor uncovering them is rewarded, and the surface there follows the
-priors and the views that see it elsewhere. A mask pixel there whose colour the table beside the
+priors and the views that see it elsewhere. Only points under an overhang are doubted (the mesh
+stands over them: a skirt is the extrusion of a wider section; a bell's flared lip is not, and
+left to the priors it folds). A mask pixel there whose colour the table beside the
 foot does not show (its chromaticity farther than ``TABLE_SIGMAS`` from that of the zone's pixels
 outside the mask) is the object's and stays: without it the priors round a straight foot inward
 (a mug's: docs/tabletop.md). Only views whose masks the tabletop method made are touched: given
@@ -107,6 +109,28 @@ def table_like(table: np.ndarray, pixels: np.ndarray, k: float = TABLE_SIGMAS) -
     return dark | (np.einsum("ni,ij,nj->n", x, np.linalg.inv(cov), x) <= k * k)
 
 
+def _under_overhang(scene, zone: FootZone, axis, B, o, d, t, tp, doubt: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the ``doubt`` pixels whose point (on the mesh, else on the table) the mesh
+    stands over: a vertical ray up from it, moved a tenth of the zone away from the foot's axis,
+    meets the mesh. The masks' skirt lies under an overhang (the extrusion of a wider section);
+    a flared foot (a bell's lip) does not, and keeps its pixels."""
+    import open3d as o3d
+
+    plane = zone.plane
+    idx = np.flatnonzero(doubt.ravel())
+    out = np.zeros(doubt.size, bool)
+    if not len(idx):
+        return out.reshape(doubt.shape)
+    tt = np.where(np.isfinite(t[idx]), t[idx], np.where(np.isfinite(tp[idx]), tp[idx], 0.0))
+    q = o + tt[:, None] * d[idx]
+    away = (q - axis) @ B.T @ B
+    away /= np.maximum(np.linalg.norm(away, axis=1, keepdims=True), 1e-12)
+    start = q + 0.1 * zone.height * away + 1e-3 * zone.height * plane.normal
+    up = np.concatenate([start, np.broadcast_to(plane.normal, start.shape)], 1).astype(np.float32)
+    out[idx] = np.isfinite(scene.cast_rays(o3d.core.Tensor(up))["t_hit"].numpy())
+    return out.reshape(doubt.shape)
+
+
 def foot_weights(zone: FootZone, cameras, masks: np.ndarray, images: np.ndarray | None = None) -> np.ndarray:
     import cv2
     import open3d as o3d
@@ -121,6 +145,7 @@ def foot_weights(zone: FootZone, cameras, masks: np.ndarray, images: np.ndarray 
     low = mesh.v_pos[plane.height(mesh.v_pos) <= zone.height]
     B = plane.basis()[:2]
     tree = cKDTree(low @ B.T) if len(low) else None
+    axis = plane.project(low.mean(0) if len(low) else mesh.v_pos.mean(0))
     jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
     pix = np.stack([jj.ravel(), ii.ravel(), np.ones(jj.size)], 1)
     for k, cam in enumerate(cameras):
@@ -150,6 +175,7 @@ def foot_weights(zone: FootZone, cameras, masks: np.ndarray, images: np.ndarray 
         both = ((masks[k] > 0.5) & hit.reshape(H, W)).astype(np.uint8)
         interior = cv2.erode(both, _disk(r), borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
         doubt = in_zone & ~interior
+        doubt &= _under_overhang(scene, zone, axis, B, o, d, t, tp, doubt)
         if images is not None:
             # a mask pixel in the zone is doubted only when it looks like the table: the table's
             # colour from the zone's pixels outside the mask (the table beside the foot)

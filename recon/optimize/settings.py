@@ -221,9 +221,8 @@ class LossSettings:
         (:func:`recon.optimize.objective.weights`).
     uncertain_foot : on a table with tabletop masks, the pixels near a silhouette that see the
         object's foot or the table beside it, up to this multiple of the masks' parallax band
-        above the table, are left out of the image term (:mod:`recon.optimize.foot`); 0: off
-        (the default: it halves the error of a blob whose masks hold a skirt, and breaks a
-        bell's flared lip eightfold; docs/tabletop.md). 1.5 is the measured setting.
+        above the table, are left out of the image term where the mesh overhangs them and the
+        photo shows the table's colour (:mod:`recon.optimize.foot`, docs/tabletop.md); 0: off.
     uncertain_foot_weight : those pixels' weight in the image term (0: left out).
     """
 
@@ -243,7 +242,7 @@ class LossSettings:
     use_laplacian: bool = True
     use_normal_edge: bool = True
     use_material_priors: bool = True
-    uncertain_foot: float = 0.0
+    uncertain_foot: float = 1.5
     uncertain_foot_weight: float = 0.0
 
     def __post_init__(self):

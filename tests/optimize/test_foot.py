@@ -99,11 +99,30 @@ def test_table_like_by_chromaticity_not_brightness():
 def test_settings_bounds():
     from recon.optimize.settings import LossSettings
 
-    assert LossSettings().uncertain_foot == 0.0 and LossSettings().uncertain_foot_weight == 0.0  # off by default
+    assert LossSettings().uncertain_foot == 1.5 and LossSettings().uncertain_foot_weight == 0.0
     for bad in ({"uncertain_foot": -0.1}, {"uncertain_foot": 11.0}, {"uncertain_foot_weight": 1.5},
                 {"uncertain_foot_weight": float("nan")}):
         with pytest.raises(ValueError, match="uncertain_foot"):
             LossSettings(**bad)
+
+
+def test_a_flared_foot_keeps_its_pixels():
+    """A foot wider than what stands on it (a bell's lip, a cone on its base) is not under an
+    overhang: the masks there are no extrusion of a wider section, and every pixel stays in."""
+    ball = _ball()
+    v = ball.v_pos.copy()
+    xy = np.linalg.norm(v[:, :2], axis=1, keepdims=True)
+    r = 1.0 - 0.3 * v[:, 2:3]  # radius 1 on the table, 0.4 at the top
+    v[:, :2] = np.where(xy > 1e-9, v[:, :2] / np.maximum(xy, 1e-12) * r, 0.0)
+    cone = Mesh(v, ball.t_pos_idx)
+    cams = [_camera("low", 10.0), _camera("mid", 35.0)]
+    masks = np.stack([_silhouette(cone, c) for c in cams]).astype(np.float32)
+    w = FootZone(PLANE, 0.2, cone, frozenset({"low", "mid"})).weights(cams, masks)
+    assert (w < 1).sum() <= 0.005 * masks.sum()  # (a few rim pixels, where the ray grazes the base)
+    # the same zone on the ball's skirt does doubt pixels (the control)
+    hull = _hull(ball, 0.2)
+    m2 = np.stack([_silhouette(hull, c) for c in cams]).astype(np.float32)
+    assert (FootZone(PLANE, 0.2, hull, frozenset({"low", "mid"})).weights(cams, m2) == 0).any()
 
 
 def test_cameras_level_with_the_table_give_no_nan():

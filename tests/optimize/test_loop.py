@@ -311,10 +311,10 @@ def test_tabletop_masks_leave_the_foot_out(capture, tmp_path):
     views = {s: {"source": "tabletop"} for s in stems}
     (tmp_path / "masks.json").write_text(json.dumps({"method": "tabletop", "views": views,
                                                      "segment": {"hull": {"parallax_band": 0.1, "height": 1.0}}}))
-    off = replace(TINY, stages=(StageSettings(0.12, 32, 2),))
+    off = replace(TINY, stages=(StageSettings(0.12, 32, 2),), uncertain_foot=0.0)
     got = optimize_capture(images, masks, sats, cams, init, tmp_path / "off", off, progress=False,
                            plane_json=tmp_path / "plane.json")
-    assert got["stages"][0]["foot_pixels_out"] is None  # off by default
+    assert got["stages"][0]["foot_pixels_out"] is None  # turned off
     s = replace(off, uncertain_foot=1.5)
     got = optimize_capture(images, masks, sats, cams, init, tmp_path / "t", s, progress=False,
                            plane_json=tmp_path / "plane.json")
