@@ -20,12 +20,11 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from _workflow import run_workflow
 
 from recon.io.mesh import read_obj, read_ply
 from recon.optimize.remesh import is_manifold
@@ -55,11 +54,7 @@ def run(repo_root, tmp_path_factory):
     for p in photos:
         (caps / "skull" / "images" / p.name).symlink_to(p.resolve())
     res = tmp_path_factory.mktemp("results")
-    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "PYTHONPATH": str(repo_root)}
-    r = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "--config", f"captures={caps}",
-                        f"results={res}", "preset=draft", "--", f"{res}/skull/report/metrics.json"],
-                       cwd=repo_root, env=env, capture_output=True, text=True, timeout=3000)
-    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
+    run_workflow(repo_root, caps, res, f"{res}/skull/report/metrics.json", timeout=3000)
     return len(photos), res / "skull"
 
 

@@ -9,13 +9,11 @@ a flat base on it, and the asset stands upright on y = 0. Numbers against the gr
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from _workflow import run_workflow
 from _tabletop_scene import tabletop_capture
 from scipy.spatial import Delaunay
 
@@ -44,11 +42,7 @@ def run(repo_root, tmp_path_factory):
     with open(caps / "mug" / "capture.yaml", "a") as f:
         f.write(CAPTURE_YAML)
     res = tmp_path_factory.mktemp("results")
-    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "PYTHONPATH": str(repo_root)}
-    r = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "--config", f"captures={caps}",
-                        f"results={res}", "preset=draft", "--", f"{res}/mug/export/asset.glb"],
-                       cwd=repo_root, env=env, capture_output=True, text=True, timeout=1200)
-    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
+    run_workflow(repo_root, caps, res, f"{res}/mug/export/asset.glb", timeout=1200)
     return caps / "mug", res / "mug"
 
 
