@@ -4,7 +4,7 @@ slow: 5 minutes on 2 idle cores, peak 2 GB; .ci/run runs it after the demo).
 "Photogrammetry Test Set: Skull - Cameramoves - Flash - No Background" by alansartlog (CC BY 4.0,
 docs/real_skull.md). The photos are not in the repository: they are read from the project's
 shared data folder (``RECON_SKULL_DIR``, else ``../shared/data/real/skull-flash`` beside the
-checkout, else ``/work/shared/data/real/skull-flash``) and linked, never copied, into a captures
+checkout, where tests/conftest.py's ``shared_data`` looks too) and linked, never copied, into a captures
 folder with nothing else: no ``capture.yaml``, no cameras, no masks, no flash intensity. Without
 the photos the tests skip, unless ``RECON_REQUIRE_REAL=1`` (CI) makes that a failure.
 
@@ -33,8 +33,8 @@ pytestmark = pytest.mark.slow
 
 
 def _skull_dir(repo_root: Path) -> Path | None:
-    for d in (os.environ.get("RECON_SKULL_DIR"), repo_root.parent / "shared" / "data" / "real" / "skull-flash",
-              Path("/work/shared/data/real/skull-flash")):
+    # the shared data sits beside the checkout (tests/conftest.py's SHARED_DATA, also in CI)
+    for d in (os.environ.get("RECON_SKULL_DIR"), repo_root.parent / "shared" / "data" / "real" / "skull-flash"):
         if d and (Path(d) / "images").is_dir() and any((Path(d) / "images").glob("*.JPG")):
             return Path(d)
     return None
