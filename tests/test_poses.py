@@ -799,3 +799,57 @@ def test_sfm_support_plane_pass_replaces_the_masks_of_a_tabletop_capture(tmp_pat
             a.K @ (a.world_to_camera[:3, :3] @ refit.apply(x).T + a.world_to_camera[:3, 3:])
         np.testing.assert_allclose(pb[:2] / pb[2], pa[:2] / pa[2], atol=1e-6)
     assert abs(moved.height(refit.apply(x[:1]))[0] - plane.height(x[:1])[0] * refit.scale) < 1e-9
+
+
+def test_database_images_are_numbered_by_name_whatever_order_extraction_wrote_them(tmp_path):
+    """COLMAP's extraction threads write images in the order they finish; the poses stage
+    renumbers them by file name before matching, so every later step (and incremental mapping,
+    which walks images by id) sees the same ids on every run."""
+    import sqlite3
+
+    import cv2
+    import pycolmap
+
+    from recon.poses.features import number_images_by_name
+
+    rng = np.random.default_rng(3)
+    images = tmp_path / "images"
+    images.mkdir()
+    names = ["a.png", "b.png", "c.png", "d.png"]
+    for name in names:  # blurred noise: SIFT finds features, different ones in every image
+        img = cv2.GaussianBlur(rng.random((96, 128)).astype(np.float32), (0, 0), 2.0)
+        write_png(images / name, np.repeat(((img - img.min()) / np.ptp(img))[..., None], 3, axis=2))
+    db = tmp_path / "database.db"
+    pycolmap.extract_features(db, images, camera_mode=pycolmap.CameraMode.SINGLE,
+                              extraction_options=pycolmap.FeatureExtractionOptions(num_threads=1),
+                              device=pycolmap.Device.cpu)
+
+    def by_name():
+        con = sqlite3.connect(db)
+        try:
+            ids = dict(con.execute("SELECT name, image_id FROM images").fetchall())
+            keypoints = dict(con.execute("SELECT image_id, data FROM keypoints").fetchall())
+            descriptors = dict(con.execute("SELECT image_id, data FROM descriptors").fetchall())
+            frames = dict(con.execute("SELECT data_id, frame_id FROM frame_data").fetchall())
+            return {n: (ids[n], keypoints[ids[n]], descriptors[ids[n]], frames[ids[n]]) for n in ids}
+        finally:
+            con.close()
+
+    written = by_name()
+    assert not number_images_by_name(db)  # one thread: already in name order, nothing changed
+    assert [written[n][0] for n in names] == [1, 2, 3, 4]
+    con = sqlite3.connect(db)
+    with con:  # as two extraction threads may write them: b, d, a, c (their frames alike)
+        for table, col in (("images", "image_id"), ("keypoints", "image_id"), ("descriptors", "image_id"),
+                           ("frame_data", "data_id"), ("frame_data", "frame_id"), ("frames", "frame_id")):
+            con.execute(f"UPDATE {table} SET {col} = {col} + 100")
+            for old, new in ((1, 3), (2, 1), (3, 4), (4, 2)):
+                con.execute(f"UPDATE {table} SET {col} = ? WHERE {col} = ?", (new, old + 100))
+    con.close()
+    shuffled = by_name()
+    assert [shuffled[n][0] for n in names] == [3, 1, 4, 2]
+    assert number_images_by_name(db)
+    renumbered = by_name()
+    assert renumbered == written  # ids 1-4 by name, each with its own keypoints, descriptors and frame
+    assert pycolmap.Database.open(db).num_keypoints() == sum(pycolmap.Database.open(db).num_keypoints_for_image(i)
+                                                              for i in (1, 2, 3, 4))

@@ -9,6 +9,7 @@ scales with the image (:func:`verify_max_error`).
 
 from __future__ import annotations
 
+import sqlite3
 import time
 from pathlib import Path
 
@@ -161,6 +162,7 @@ def extract_and_match(db: Path, images: Path, n_views: int, settings: PoseSettin
         db, images, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
         extraction_options=extraction, device=pycolmap.Device.cpu,
     )
+    number_images_by_name(db)
     t1 = time.perf_counter()
     matching = pycolmap.FeatureMatchingOptions(num_threads=settings.num_threads,
                                                guided_matching=settings.matching.guided_matching)
@@ -182,6 +184,46 @@ def extract_and_match(db: Path, images: Path, n_views: int, settings: PoseSettin
     t2 = time.perf_counter()
     info = {**info, "peak_threshold": peak_threshold(settings, shape), "guided_matching": settings.matching.guided_matching}
     return {"matcher": kind, "extract_s": t1 - t0, "match_s": t2 - t1, "matching": info}
+
+
+_ID_OFFSET = 1_000_000_000  # above any image or frame id; COLMAP's ids stay below 2^31 - 1
+_CAMERA_SENSOR = 0  # COLMAP's SensorType::CAMERA in frame_data and pose_priors
+
+
+def number_images_by_name(db: Path) -> bool:
+    """Give the database's images (and their frames) the ids 1, 2, ... in file-name order.
+
+    COLMAP's extraction threads hand their images to the database writer in the order they
+    finish, so with several threads two runs number the same photos differently (the demo: 0000
+    and 0001 swapped in 2 of 3 runs with identical keypoints), and incremental mapping, which
+    walks images by id, then grows another model: cameras 1.2e-3 apart. After this the ids,
+    and so every later step, depend only on the photos. True when anything was renumbered."""
+    con = sqlite3.connect(db)
+    try:
+        with con:
+            rows = con.execute("SELECT image_id, name FROM images").fetchall()
+            new = {old: k + 1 for k, (old, _) in enumerate(sorted(rows, key=lambda r: r[1]))}
+            frames = dict(con.execute("SELECT data_id, frame_id FROM frame_data WHERE sensor_type = ?",
+                                      (_CAMERA_SENSOR,)).fetchall())
+            # a frame takes the new id of its first image (one image per frame: the same id)
+            new_frame = {}
+            for old_image in sorted(new, key=new.get):
+                if old_image in frames and frames[old_image] not in new_frame:
+                    new_frame[frames[old_image]] = len(new_frame) + 1
+            if all(o == n for o, n in new.items()) and all(o == n for o, n in new_frame.items()):
+                return False
+            columns = (("images", "image_id", "", new), ("keypoints", "image_id", "", new),
+                       ("descriptors", "image_id", "", new),
+                       ("frame_data", "data_id", f" AND sensor_type = {_CAMERA_SENSOR}", new),
+                       ("pose_priors", "corr_data_id", f" AND corr_sensor_type = {_CAMERA_SENSOR}", new),
+                       ("frames", "frame_id", "", new_frame), ("frame_data", "frame_id", "", new_frame))
+            for table, col, extra, mapping in columns:  # two passes: no id is ever taken twice at once
+                for old, n in mapping.items():
+                    con.execute(f"UPDATE {table} SET {col} = ? WHERE {col} = ?{extra}", (n + _ID_OFFSET, old))
+                con.execute(f"UPDATE {table} SET {col} = {col} - ? WHERE {col} > ?{extra}", (_ID_OFFSET, _ID_OFFSET))
+        return True
+    finally:
+        con.close()
 
 
 def matcher_kind(settings: PoseSettings, n_views: int) -> str:
