@@ -164,15 +164,6 @@ def _base_run(inputs: _Inputs, cams: CameraSet, settings: OptimizeSettings, sour
     completed) and the held-out views' record."""
     mode, why = settings.camera_mode(source)
     stages = settings.effective_stages()
-    views = Views(inputs.images, inputs.masks, inputs.saturation_masks, cams,
-                  max(settings.stage_image_size(s) for s in stages))
-    views, heldout, holdout_info = split_holdout(views, settings, force=mode == "select")
-    if mode != "off" and len(views) < 3:
-        mode, why = "off", f"only {len(views)} training views (camera refinement needs at least 3)"
-    if mode == "select" and heldout is None:
-        mode, why = "off", "no held-out views to decide on (cameras.refine: select needs at least 6 views)"
-    if mode != "off" or settings.cameras.refine != "off":
-        log.info("camera refinement: %s (%s)", mode, why)
     init = read_mesh(inputs.init_mesh_obj)
     lo, hi = init.bbox()
     bbox_scale = float(np.max(hi - lo))
@@ -193,6 +184,15 @@ def _base_run(inputs: _Inputs, cams: CameraSet, settings: OptimizeSettings, sour
     if foot is not None:
         log.info("tabletop masks (%s): the foot's pixels near a silhouette, up to %.3g above the table, are left out "
                  "of the image term in %d views", masks_json, foot.height, len(foot.stems))
+    views = Views(inputs.images, inputs.masks, inputs.saturation_masks, cams,
+                  max(settings.stage_image_size(s) for s in stages), keep_photos=foot is not None)
+    views, heldout, holdout_info = split_holdout(views, settings, force=mode == "select")
+    if mode != "off" and len(views) < 3:
+        mode, why = "off", f"only {len(views)} training views (camera refinement needs at least 3)"
+    if mode == "select" and heldout is None:
+        mode, why = "off", "no held-out views to decide on (cameras.refine: select needs at least 6 views)"
+    if mode != "off" or settings.cameras.refine != "off":
+        log.info("camera refinement: %s (%s)", mode, why)
     files = [inputs.cameras_json, inputs.init_mesh_obj, *inputs.images, *(inputs.masks or []),
              *(inputs.saturation_masks or []), inputs.plane_json if plane is not None else None,
              masks_json if foot is not None else None]

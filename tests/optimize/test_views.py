@@ -48,6 +48,21 @@ def test_pairs_masks_and_downsamples(tmp_path):
     np.testing.assert_allclose(half.masks[0, 0, 1], 0.5)
 
 
+def test_unmasked_photos_only_when_asked(tmp_path):
+    """The unmasked photos (the foot zone's colour test) at any stage size; none kept otherwise."""
+    imgs, masks, sats, cs = make(tmp_path)
+    v = Views(imgs, masks, sats, cs, max_size=8)
+    photos = v.photos_at(4)
+    assert photos.shape == (2, 3, 4, 3) and photos.dtype == np.float32
+    assert float(photos[0, 0, 0].sum()) > 0  # the background is kept, unlike v.at(4).images
+    np.testing.assert_allclose(v.subset([1]).photos_at(8)[0], v.photos_at(8)[1])
+    lean = Views(imgs, masks, sats, cs, max_size=8, keep_photos=False)
+    assert lean.photos is None and lean.subset([1, 0]).photos is None
+    np.testing.assert_array_equal(lean.at(8).images.numpy(), v.at(8).images.numpy())
+    with pytest.raises(ViewsError, match="keep_photos"):
+        lean.photos_at(8)
+
+
 def test_errors_name_the_file(tmp_path):
     imgs, masks, sats, cs = make(tmp_path)
     with pytest.raises(ViewsError, match="one mask per image"):
