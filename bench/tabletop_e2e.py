@@ -55,6 +55,19 @@ the object's lowest point (the same plane its void peer's ``gt/plane.json`` name
     OMP_WAIT_POLICY=PASSIVE .venv/bin/python bench/tabletop_e2e.py --out /tmp/e2e --views 40 --res 384 \
         --family wood-blob glossy-mug room-smooth wood-vase dark-bowl stand-blob --docs /tmp/e2e/table.md
 
+``--variant NAME=JSON`` (repeatable, with ``--family``): after the workflow, optimize alone again
+on each scene's own upstream results (its poses, masks and uv mesh; the void peers are left as
+they are) with the preset's optimize settings updated by JSON (nested like capture.yaml's
+``optimize`` section), into ``<out>/variants/NAME/<scene>``; one row per scene gives the final
+accuracy, seen completeness and share of the surface not the object of each variant. The
+same inputs for every variant, so the rows differ by the setting and the renderer's
+run-to-run noise only (up to 0.001 in accuracy measured). Example, the foot zone off and on
+(docs/tabletop.md)::
+
+    OMP_WAIT_POLICY=PASSIVE .venv/bin/python bench/tabletop_e2e.py --out /tmp/e2e --views 40 --res 384 \
+        --family wood-blob wood-bell-1008 --measure-only \
+        --variant 'foot-off={"loss": {"uncertain_foot": 0}}' --variant 'default={}'
+
 CPU is scarce on the development machine: captures are cached in ``<out>/captures`` and
 Snakemake redoes nothing that is done.
 """
@@ -496,6 +509,79 @@ def family_verdict(results: dict, given_cameras: bool = False) -> str:
     return text
 
 
+def parse_variant(text: str) -> tuple[str, dict]:
+    """``NAME=JSON`` of ``--variant``: a folder-safe name and a mapping of optimize settings."""
+    name, sep, body = text.partition("=")
+    if not sep or not name or not all(ch.isalnum() or ch in "-_." for ch in name):
+        raise argparse.ArgumentTypeError(f"--variant {text!r}: expected NAME=JSON, NAME of letters, digits, - _ .")
+    try:
+        value = json.loads(body)
+    except json.JSONDecodeError as e:
+        raise argparse.ArgumentTypeError(f"--variant {name}: not JSON ({e})") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"--variant {name}: expected a JSON object of optimize settings")
+    return name, value
+
+
+def _merged(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merged(out.get(k) or {}, v) if isinstance(v, dict) else v
+    return out
+
+
+def optimize_variant(cap: Path, res: Path, out: Path, preset: str, override: dict) -> dict:
+    """Optimize alone on the workflow's results ``res`` of capture ``cap`` (the stage's inputs as
+    workflow/rules/optimize.smk passes them) with the preset's settings updated by ``override``;
+    the final mesh measured as :func:`measure` does."""
+    from recon.config import effective_settings
+    from recon.optimize import optimize_from_dirs, settings_from_dict
+
+    settings = _merged(effective_settings("optimize", preset, cap, REPO / "config" / "presets"), override)
+    views = res / "poses" / "undistorted"
+    plane = res / "poses" / "plane.json"
+    t0 = time.perf_counter()
+    optimize_from_dirs(views, views / "masks", res / "poses" / "cameras.json", res / "uv" / "mesh.obj", out,
+                       settings_from_dict(settings), progress=False, plane_json=plane if plane.is_file() else None)
+    seconds = time.perf_counter() - t0
+    gt = read_obj(cap / "gt" / "mesh.obj")
+    sim = align_cameras(load_cameras(res / "poses" / "cameras.json"), load_cameras(cap / "gt" / "cameras.json"))
+    plane_ref, _ = reference_plane(cap, gt)
+    rng = np.random.default_rng(0)  # the same draws as measure(): the visible samples, then the surface's
+    visible = visible_samples(gt, load_cameras(cap / "gt" / "cameras.json"), 20000, rng)
+    summary = json.loads((out / "summary.json").read_text())
+    return {**geometry(read_obj(out / "mesh.obj"), gt, visible, sim, rng, plane_ref), "seconds": seconds,
+            "foot_pixels_out": [st.get("foot_pixels_out") for st in summary.get("stages", [])]}
+
+
+def variants_table(rows: dict) -> str:
+    names = sorted({v for r in rows.values() for v in r})
+    head = "| scene | " + " | ".join(f"{n}: acc. / compl. / not the object" for n in names) + " |"
+    lines = [head, "|---|" + "---|" * len(names)]
+    for scene, r in rows.items():
+        cells = [f"{_f(r[n].get('accuracy'))} / {_f(r[n].get('completeness_seen'))} / {_f(r[n].get('far_2pct'), '.1%')}"
+                 if n in r else "-" for n in names]
+        lines.append(f"| {scene} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def run_variants(args, out: Path, names: list[str]) -> None:
+    """--variant: optimize alone again per scene and variant; prints and saves the table."""
+    path = out / "tabletop_e2e_variants.json"
+    rows: dict = json.loads(path.read_text()).get("results", {}) if path.is_file() else {}
+    for name in names:
+        res = out / "results" / name
+        if not (res / "uv" / "mesh.obj").is_file():
+            log.warning("%s: no uv mesh in %s (the workflow stopped before uv); no variants", name, res)
+            continue
+        for vname, override in args.variant:
+            log.info("%s: optimize with %s %s", name, vname, json.dumps(override))
+            rows.setdefault(name, {})[vname] = {"settings": override, **optimize_variant(
+                out / "captures" / name, res, out / "variants" / vname / name, args.preset, override)}
+            path.write_text(json.dumps({"command": " ".join(sys.argv), "results": rows}, indent=1, default=float))
+    print(variants_table({n: rows[n] for n in names if n in rows}))  # noqa: T201
+
+
 def run_family(args, out: Path) -> int:
     caps, res = out / "captures", out / "results"
     res.mkdir(parents=True, exist_ok=True)
@@ -541,6 +627,8 @@ def run_family(args, out: Path) -> int:
     print(verdict)  # noqa: T201
     if args.docs:
         args.docs.write_text(f"{settings}\n\n{text}\n\n{verdict}\n")
+    if args.variant:
+        run_variants(args, out, list(args.family))
     return 0
 
 
@@ -561,7 +649,11 @@ def main(argv=None) -> int:
     p.add_argument("--phone", action="store_true", help="the photos as a phone makes them (JPEG, tone curve, ...)")
     p.add_argument("--measure-only", action="store_true")
     p.add_argument("--docs", type=Path, help="write the markdown table to this file")
+    p.add_argument("--variant", type=parse_variant, action="append", default=[], metavar="NAME=JSON",
+                   help="with --family: optimize alone again with these optimize settings (see above)")
     args = p.parse_args(argv)
+    if args.variant and not args.family:
+        p.error("--variant needs --family")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     out = args.out.resolve()
     if args.family:
