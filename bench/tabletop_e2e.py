@@ -55,8 +55,8 @@ the object's lowest point (the same plane its void peer's ``gt/plane.json`` name
     OMP_WAIT_POLICY=PASSIVE .venv/bin/python bench/tabletop_e2e.py --out /tmp/e2e --views 40 --res 384 \
         --family wood-blob glossy-mug room-smooth wood-vase dark-bowl stand-blob --docs /tmp/e2e/table.md
 
-``--variant NAME=JSON`` (repeatable, with ``--family``): after the workflow, optimize alone again
-on each scene's own upstream results (its poses, masks and uv mesh; the void peers are left as
+``--variant NAME=JSON`` (repeatable): after the workflow, optimize alone again on each scene's
+(or each ``--objects`` capture's) own upstream results (its poses, masks and uv mesh; the void peers are left as
 they are) with the preset's optimize settings updated by JSON (nested like capture.yaml's
 ``optimize`` section), into ``<out>/variants/NAME/<scene>``; one row per scene gives the final
 accuracy, seen completeness and share of the surface not the object of each variant. The
@@ -650,10 +650,8 @@ def main(argv=None) -> int:
     p.add_argument("--measure-only", action="store_true")
     p.add_argument("--docs", type=Path, help="write the markdown table to this file")
     p.add_argument("--variant", type=parse_variant, action="append", default=[], metavar="NAME=JSON",
-                   help="with --family: optimize alone again with these optimize settings (see above)")
+                   help="optimize alone again with these optimize settings (see above)")
     args = p.parse_args(argv)
-    if args.variant and not args.family:
-        p.error("--variant needs --family")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     out = args.out.resolve()
     if args.family:
@@ -683,6 +681,8 @@ def main(argv=None) -> int:
     print(text)  # noqa: T201
     if args.docs:
         args.docs.write_text(f"{settings}\n\n{text}\n")
+    if args.variant:
+        run_variants(args, out, list(names.values()))
     return 0
 
 

@@ -1,4 +1,4 @@
-"""The object's foot on a table: pixels whose masks cannot be trusted, left out of the image term.
+"""The object's foot on a table: pixels whose masks cannot be trusted, made background or left out.
 
 Tabletop masks (:mod:`recon.masks.tabletop`) tell the object from the table by the parallax the
 support plane induces between neighbouring views. Within the *parallax band* above the table
@@ -22,6 +22,13 @@ foot does not show (its chromaticity farther than ``TABLE_SIGMAS`` from that of 
 outside the mask) is the object's and stays: without it the priors round a straight foot inward
 (a mug's: docs/tabletop.md). Only views whose masks the tabletop method made are touched: given
 masks are trusted, and a capture without a plane has no foot to doubt.
+
+:func:`foot_classes` sorts those pixels (:data:`TABLE`: a mask pixel with the table's colour;
+:data:`DOUBT`: one too dark to tell; :data:`OUTSIDE`: outside the mask). With
+``loss.uncertain_foot_mode: background`` (the default) a :data:`TABLE` pixel becomes background:
+target 0 at full weight, so a surface over it is pushed off, as over any background pixel, and
+the skirt is carved rather than only left to the priors (wood-blob 0.0041 -> 0.0028, the dark
+bowl's rim 0.0235 -> 0.0166; docs/tabletop.md). ``exclude`` leaves every doubted pixel out.
 """
 
 from __future__ import annotations
@@ -60,7 +67,14 @@ class FootZone:
         """(N, h, w) float32: ``weight`` on the doubtful foot pixels of the views in ``stems``, else 1.
         With ``images`` (N, h, w, 3), a mask pixel whose colour the table beside the foot does not
         show stays in (:func:`table_like`)."""
-        return foot_weights(self, cameras, masks, images)
+        return np.where(foot_classes(self, cameras, masks, images) > KEEP, np.float32(self.weight),
+                        np.float32(1.0)).astype(np.float32)
+
+    def classes(self, cameras, masks: np.ndarray, images: np.ndarray | None = None) -> np.ndarray:
+        """(N, h, w) int8: :data:`KEEP`, :data:`DOUBT` (a mask pixel too dark to tell, or without
+        ``images``), :data:`TABLE` (a mask pixel with the table's colour), :data:`OUTSIDE` (a
+        doubted pixel outside the mask)."""
+        return foot_classes(self, cameras, masks, images)
 
 
 def foot_zone(masks_json: str | os.PathLike | None, plane: SupportPlane | None, mesh: Mesh,
@@ -105,8 +119,15 @@ def table_like(table: np.ndarray, pixels: np.ndarray, k: float = TABLE_SIGMAS) -
     mu = c.mean(0)
     cov = np.cov(c.T) + 1e-6 * np.eye(2)
     x = _chroma(pixels) - mu
-    dark = pixels.sum(-1) < 0.05 * np.median(table.sum(-1))
-    return dark | (np.einsum("ni,ij,nj->n", x, np.linalg.inv(cov), x) <= k * k)
+    return too_dark(table, pixels) | (np.einsum("ni,ij,nj->n", x, np.linalg.inv(cov), x) <= k * k)
+
+
+def too_dark(table: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """(m,) bool: ``pixels`` under a twentieth of the ``table`` pixels' median brightness (their
+    chromaticity is noise); all True when fewer than 20 table pixels (nothing to compare with)."""
+    if len(table) < 20:
+        return np.ones(len(pixels), bool)
+    return pixels.sum(-1) < 0.05 * np.median(table.sum(-1))
 
 
 def _under_overhang(scene, zone: FootZone, axis, B, o, d, t, tp, doubt: np.ndarray) -> np.ndarray:
@@ -131,13 +152,21 @@ def _under_overhang(scene, zone: FootZone, axis, B, o, d, t, tp, doubt: np.ndarr
     return out.reshape(doubt.shape)
 
 
+KEEP, DOUBT, TABLE, OUTSIDE = 0, 1, 2, 3  # foot_classes
+
+
 def foot_weights(zone: FootZone, cameras, masks: np.ndarray, images: np.ndarray | None = None) -> np.ndarray:
+    """:meth:`FootZone.weights`."""
+    return zone.weights(cameras, masks, images)
+
+
+def foot_classes(zone: FootZone, cameras, masks: np.ndarray, images: np.ndarray | None = None) -> np.ndarray:
     import cv2
     import open3d as o3d
     from scipy.spatial import cKDTree
 
     n, H, W = masks.shape
-    out = np.ones((n, H, W), np.float32)
+    out = np.zeros((n, H, W), np.int8)
     mesh, plane = zone.mesh, zone.plane
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(mesh.v_pos.astype(np.float32)),
@@ -176,13 +205,14 @@ def foot_weights(zone: FootZone, cameras, masks: np.ndarray, images: np.ndarray 
         interior = cv2.erode(both, _disk(r), borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
         doubt = in_zone & ~interior
         doubt &= _under_overhang(scene, zone, axis, B, o, d, t, tp, doubt)
+        inside = doubt & (masks[k] > 0.5)
+        out[k][doubt & ~inside] = OUTSIDE
+        out[k][inside] = DOUBT
         if images is not None:
             # a mask pixel in the zone is doubted only when it looks like the table: the table's
             # colour from the zone's pixels outside the mask (the table beside the foot)
-            inside = doubt & (masks[k] > 0.5)
             table = images[k][doubt & (masks[k] <= 0.5)]
-            keep = np.zeros_like(doubt)
-            keep[inside] = ~table_like(table, images[k][inside])
-            doubt &= ~keep
-        out[k][doubt] = zone.weight
+            like = table_like(table, images[k][inside])
+            dark = too_dark(table, images[k][inside])
+            out[k][inside] = np.where(like, np.where(dark, DOUBT, TABLE), KEEP)
     return out

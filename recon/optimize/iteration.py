@@ -22,6 +22,7 @@ import torch
 
 from recon.io.mesh import Mesh
 from recon.optimize import checkpoint as ckpt
+from recon.optimize import foot
 from recon.optimize import objective, schedule
 from recon.optimize import regularizers as reg
 from recon.optimize.guard import SurfaceGuard
@@ -129,10 +130,19 @@ def build_stage(run: Run, index, stage_settings, h, mesh, v_init, covered, map_v
     targets = run.views.at(settings.stage_image_size(stage_settings))
     foot_out = None
     if run.foot is not None:
-        w = run.foot.weights(targets.cameras, targets.masks, run.views.photos_at(settings.stage_image_size(stage_settings)))
-        targets = dataclasses.replace(targets, weights=targets.weights * torch.from_numpy(w)[..., None])
+        cls = run.foot.classes(targets.cameras, targets.masks,
+                               run.views.photos_at(settings.stage_image_size(stage_settings)))
         inside = targets.masks > 0.5
-        foot_out = float(((w < 1) & inside).sum()) / max(float(inside.sum()), 1.0)
+        if settings.loss.uncertain_foot_mode == "background":  # the table's pixels become background
+            table = torch.from_numpy(cls == foot.TABLE)[..., None]
+            w = np.where(cls == foot.DOUBT, np.float32(run.foot.weight), np.float32(1.0)).astype(np.float32)
+            targets = dataclasses.replace(targets, images=torch.where(table, torch.zeros(()), targets.images),
+                                          masks=np.where(cls == foot.TABLE, np.float32(0), targets.masks),
+                                          weights=targets.weights * torch.from_numpy(w)[..., None])
+        else:
+            w = np.where(cls > foot.KEEP, np.float32(run.foot.weight), np.float32(1.0)).astype(np.float32)
+            targets = dataclasses.replace(targets, weights=targets.weights * torch.from_numpy(w)[..., None])
+        foot_out = float(((cls > foot.KEEP) & inside).sum()) / max(float(inside.sum()), 1.0)
         log.info("stage %d: %.1f %% of the mask pixels (%d pixels in all) at the object's foot left out of the image "
                  "term (tabletop masks cannot tell it from the table there)", index, 100 * foot_out, int((w < 1).sum()))
     renderer = make_renderer(settings, mesh)

@@ -42,6 +42,7 @@ OPTIMIZERS = ("largesteps", "adam")
 BOUNDARIES = ("edge", "none", "projective")
 LAPLACIANS = ("uniform", "cotangent")
 TONE_MAPS = ("log", "srgb", "linear")
+FOOT_MODES = ("exclude", "background")  # recon.optimize.foot
 PARAMETERIZATIONS = ("sigmoid", "clamp")
 CAMERA_MODES = ("off", "on", "select")
 LIGHT_SCALES = ("auto", "estimate", "given")
@@ -221,9 +222,13 @@ class LossSettings:
         (:func:`recon.optimize.objective.weights`).
     uncertain_foot : on a table with tabletop masks, the pixels near a silhouette that see the
         object's foot or the table beside it, up to this multiple of the masks' parallax band
-        above the table, are left out of the image term where the mesh overhangs them and the
-        photo shows the table's colour (:mod:`recon.optimize.foot`, docs/tabletop.md); 0: off.
-    uncertain_foot_weight : those pixels' weight in the image term (0: left out).
+        above the table, where the mesh overhangs them, are in doubt (:mod:`recon.optimize.foot`,
+        docs/tabletop.md); 0: off.
+    uncertain_foot_mode : "background" (default): a doubted mask pixel whose colour is the table's
+        becomes background (target 0, full weight), so the render is pushed off the table the
+        masks took in; one too dark to tell gets ``uncertain_foot_weight``. "exclude": every
+        doubted pixel gets ``uncertain_foot_weight`` (session 17's form).
+    uncertain_foot_weight : the weight of the doubted pixels left in doubt (0: out of the term).
     """
 
     w_render: float = 1.0
@@ -244,9 +249,11 @@ class LossSettings:
     use_material_priors: bool = True
     uncertain_foot: float = 1.5
     uncertain_foot_weight: float = 0.0
+    uncertain_foot_mode: str = "background"  # measured against "exclude": docs/tabletop.md
 
     def __post_init__(self):
         _one_of(self, "laplacian", LAPLACIANS)
+        _one_of(self, "uncertain_foot_mode", FOOT_MODES)
         if not 0 <= self.uncertain_foot <= 10:
             raise ValueError(f"uncertain_foot must be in [0, 10] (multiples of the masks' parallax band), got "
                              f"{self.uncertain_foot}")
@@ -495,7 +502,7 @@ RECORDED_ORDER = (
     "camera_lr_rotation_deg", "camera_lr_translation", "camera_lr_focal", "camera_lr_principal",
     "camera_align_iterations", "camera_first_stage", "select_imaging", "imaging_terms", "flash_offset",
     "tone_curve", "imaging_loop", "imaging_loop_stage", "imaging_loop_lr", "imaging_min_gain", "w_imaging",
-    "uncertain_foot", "uncertain_foot_weight")
+    "uncertain_foot", "uncertain_foot_weight", "uncertain_foot_mode")
 """The flat names of :meth:`OptimizeSettings.to_dict`, in its order: the fields of the flat class
 before the sections (settings added later follow, in their sections' order)."""
 

@@ -81,6 +81,18 @@ def test_foot_pixels_near_the_silhouette_leave_the_loss_and_the_rest_stay():
     assert (wc[0][skirt] == 0).mean() > 0.9
     assert (w[0][true[0]] == 0).any() and np.all(wc[0][true[0]] == 1)
     assert np.all(wc[w == 1] == 1)  # the colour test only keeps pixels
+    # the classes behind the weights (loss.uncertain_foot_mode: background makes TABLE background)
+    from recon.optimize.foot import DOUBT, KEEP, OUTSIDE, TABLE
+
+    cls = zone.classes(cams, masks.astype(np.float32), photos)
+    assert np.array_equal(cls > KEEP, wc < 1)
+    assert (cls[0][skirt] == TABLE).mean() > 0.9 and np.all(cls[0][true[0]] == KEEP)
+    assert (cls[0] == OUTSIDE).any() and not (masks[0] & (cls[0] == OUTSIDE)).any()  # the table beside it
+    dark = photos.copy()
+    dark[0][skirt] = 0.0  # too dark to tell: doubted, never made background
+    cls_dark = zone.classes(cams, masks.astype(np.float32), dark)
+    assert np.all(cls_dark[0][skirt & (cls[0] == TABLE)] == DOUBT)
+    assert set(np.unique(zone.classes(cams, masks.astype(np.float32)))) <= {KEEP, DOUBT, OUTSIDE}  # no photos
     # a weight instead of leaving them out (loss.uncertain_foot_weight)
     w3 = FootZone(PLANE, 0.2, hull, frozenset({"low", "high"}), 0.3).weights(cams, masks.astype(np.float32))
     assert np.array_equal(w3 == 1, w == 1) and set(np.unique(w3)) == {np.float32(0.3), 1.0}
@@ -100,8 +112,9 @@ def test_settings_bounds():
     from recon.optimize.settings import LossSettings
 
     assert LossSettings().uncertain_foot == 1.5 and LossSettings().uncertain_foot_weight == 0.0
+    assert LossSettings().uncertain_foot_mode == "background"
     for bad in ({"uncertain_foot": -0.1}, {"uncertain_foot": 11.0}, {"uncertain_foot_weight": 1.5},
-                {"uncertain_foot_weight": float("nan")}):
+                {"uncertain_foot_weight": float("nan")}, {"uncertain_foot_mode": "carve"}):
         with pytest.raises(ValueError, match="uncertain_foot"):
             LossSettings(**bad)
 

@@ -319,6 +319,12 @@ def test_tabletop_masks_leave_the_foot_out(capture, tmp_path):
     got = optimize_capture(images, masks, sats, cams, init, tmp_path / "t", s, progress=False,
                            plane_json=tmp_path / "plane.json")
     assert 0.0 < got["stages"][0]["foot_pixels_out"] < 0.3
+    # every doubted pixel left out instead (the table's not made background): the same pixels doubted
+    ex = optimize_capture(images, masks, sats, cams, init, tmp_path / "ex", replace(s, uncertain_foot_mode="exclude"),
+                          progress=False, plane_json=tmp_path / "plane.json")
+    assert ex["stages"][0]["foot_pixels_out"] == got["stages"][0]["foot_pixels_out"]
+    assert ex["settings"]["uncertain_foot_mode"] == "exclude" and got["settings"]["uncertain_foot_mode"] == "background"
+    assert np.isfinite(ex["final_losses"]["loss_render"])
     for v in views.values():
         v["source"] = "given"
     (tmp_path / "masks.json").write_text(json.dumps({"method": "given", "views": views}))
