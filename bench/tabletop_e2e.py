@@ -220,9 +220,33 @@ def geometry(mesh: Mesh, gt: Mesh, visible: np.ndarray, sim, rng, plane, n: int 
     d_vis = distance_to_mesh(m, visible) / unit
     B = plane.basis()[:2]
     outside = (Delaunay(gt.v_pos @ B.T).find_simplex(p @ B.T) < 0) | (plane.height(p) < -0.02 * unit)
+    far = p[d_rec > 0.02]
+    up, down = _vertical_hits(gt, far, plane.normal)
+    top = float(plane.height(gt.v_pos).max())
     return {"accuracy": float(d_rec.mean()), "completeness_seen": float(d_vis.mean()),
             "far_2pct": float((d_rec > 0.02).mean()), "far_5pct": float((d_rec > 0.05).mean()),
-            "outside_2pct": float(((d_rec > 0.02) & outside).mean()), "faces": int(len(mesh.t_pos_idx))}
+            "outside_2pct": float(((d_rec > 0.02) & outside).mean()), "faces": int(len(mesh.t_pos_idx)),
+            # where the far surface lies: under (or inside) the object, a ray up from it meets the
+            # true surface (a skirt, a thinned foot); a lid, only a ray down meets it (over a
+            # cavity); its median height over the object's
+            "far_under": float(up.mean()) if len(far) else None,
+            "far_lid": float((down & ~up).mean()) if len(far) else None,
+            "far_median_height": float(np.median(plane.height(far)) / top) if len(far) and top > 0 else None}
+
+
+def _vertical_hits(gt: Mesh, points: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per point: whether a ray along ``normal`` (up), and one against it, meets ``gt``."""
+    import open3d as o3d
+
+    if not len(points):
+        return np.zeros(0, bool), np.zeros(0, bool)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(gt.v_pos.astype(np.float32)), o3d.core.Tensor(gt.t_pos_idx.astype(np.uint32)))
+    out = []
+    for direction in (normal, -normal):
+        rays = np.concatenate([points, np.broadcast_to(direction, points.shape)], 1).astype(np.float32)
+        out.append(np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()))
+    return out[0], out[1]
 
 
 def hit_masks(mesh: Mesh, cams) -> list[np.ndarray]:
@@ -556,10 +580,12 @@ def optimize_variant(cap: Path, res: Path, out: Path, preset: str, override: dic
 
 def variants_table(rows: dict) -> str:
     names = sorted({v for r in rows.values() for v in r})
-    head = "| scene | " + " | ".join(f"{n}: acc. / compl. / not the object" for n in names) + " |"
+    head = ("| scene | " + " | ".join(f"{n}: acc. / compl. / not the object (of it: under, lid)" for n in names)
+            + " |")
     lines = [head, "|---|" + "---|" * len(names)]
     for scene, r in rows.items():
         cells = [f"{_f(r[n].get('accuracy'))} / {_f(r[n].get('completeness_seen'))} / {_f(r[n].get('far_2pct'), '.1%')}"
+                 f" ({_f(r[n].get('far_under'), '.0%')}, {_f(r[n].get('far_lid'), '.0%')})"
                  if n in r else "-" for n in names]
         lines.append(f"| {scene} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
