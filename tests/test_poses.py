@@ -366,6 +366,17 @@ def test_sfm_recovers_synthetic_cameras(synthetic_sfm):
     assert diag["mean_reprojection_error_px"] < 1.0
 
 
+def test_one_thread_gives_the_same_cameras_on_every_run(synthetic_sfm, tmp_path):
+    """README: ``poses: {num_threads: 1}`` gives the same cameras on every run. SfM again on the
+    fixture's views, in the same process (other heap, other database file): cameras.json and
+    the sparse points byte for byte."""
+    capture, results, _ = synthetic_sfm
+    rp.run_poses(results / "linear", tmp_path / "poses", _capture_settings(capture, num_threads=1),
+                 masks_dir=results / "masks", linear_json=results / "linear" / "linear.json")
+    for name in ("cameras.json", "points.ply"):
+        assert (tmp_path / "poses" / name).read_bytes() == (results / "poses" / name).read_bytes(), name
+
+
 def test_small_photos_get_a_second_pass_on_enlarged_images(tmp_path_factory):
     """32 noise-free views of 192 x 144: SIFT finds too few features on some views at that size
     (the first pass registers < 95 %); the stage runs SfM again on 2x enlarged SIFT images and
