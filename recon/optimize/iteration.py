@@ -143,8 +143,10 @@ def build_stage(run: Run, index, stage_settings, h, mesh, v_init, covered, map_v
             w = np.where(cls > foot.KEEP, np.float32(run.foot.weight), np.float32(1.0)).astype(np.float32)
             targets = dataclasses.replace(targets, weights=targets.weights * torch.from_numpy(w)[..., None])
         foot_out = float(((cls > foot.KEEP) & inside).sum()) / max(float(inside.sum()), 1.0)
-        log.info("stage %d: %.1f %% of the mask pixels (%d pixels in all) at the object's foot left out of the image "
-                 "term (tabletop masks cannot tell it from the table there)", index, 100 * foot_out, int((w < 1).sum()))
+        made = int((cls == foot.TABLE).sum()) if settings.loss.uncertain_foot_mode == "background" else 0
+        log.info("stage %d: %.1f %% of the mask pixels at the object's foot in doubt (tabletop masks cannot tell it "
+                 "from the table there): %d pixels showing the table made background, %d left out of the image term",
+                 index, 100 * foot_out, made, int((w < 1).sum()))
     renderer = make_renderer(settings, mesh)
     return Stage(index, stage_settings, h, bbox_scale, mesh, v_init, covered, topo, geom, maps, opt_geom, opt_tex, ls,
                   guard, renderer, targets, foot_out=foot_out)
