@@ -67,7 +67,9 @@ class Stage:
     proposed: np.ndarray | None = None  # positions stepped to, not yet checked
     proposed_record: dict | None = None  # log record of the iteration that proposed them
     resting: np.ndarray | None = None  # (V,) bool, the base on the support plane (held on it)
-    foot_out: float | None = None  # share of the mask pixels left out at the object's foot (recon.optimize.foot)
+    # share of the mask pixels in doubt at the object's foot (recon.optimize.foot; with loss.uncertain_foot_mode
+    # background those showing the table are made background, the rest left out)
+    foot_out: float | None = None
 
 
 def map_params(settings: OptimizeSettings) -> dict:
