@@ -182,8 +182,10 @@ def _base_run(inputs: _Inputs, cams: CameraSet, settings: OptimizeSettings, sour
     masks_json = Path(inputs.plane_json).parent / "masks.json" if plane is not None else None
     foot = foot_zone(masks_json, plane, init, settings.loss.uncertain_foot, settings.loss.uncertain_foot_weight)
     if foot is not None:
-        log.info("tabletop masks (%s): the foot's pixels near a silhouette, up to %.3g above the table, are left out "
-                 "of the image term in %d views", masks_json, foot.height, len(foot.stems))
+        log.info("tabletop masks (%s): the foot's pixels near a silhouette under an overhang, up to %.3g above the "
+                 "table, are in doubt in %d views (%s)", masks_json, foot.height, len(foot.stems),
+                 "those showing the table made background" if settings.loss.uncertain_foot_mode == "background"
+                 else "left out of the image term")
     views = Views(inputs.images, inputs.masks, inputs.saturation_masks, cams,
                   max(settings.stage_image_size(s) for s in stages), keep_photos=foot is not None)
     views, heldout, holdout_info = split_holdout(views, settings, force=mode == "select")
