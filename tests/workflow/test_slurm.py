@@ -223,33 +223,39 @@ def _assert_same_numbers(a: Path, b: Path, rel: str) -> None:
 
 # SfM's run-to-run spread. COLMAP's two-view verification draws RANSAC samples from a PRNG per
 # thread, and its Ceres solves sum in scheduling order, so with more than one thread (the local
-# run: 2, a SLURM job: its CPUs) one pair's matches can differ and a weak view move. The demo, runs
-# with 2 threads against one with 1 thread: before recon.poses numbered the database's images by
-# name, 4 of 6 had every view 0.007 deg / 0.0013 apart (0000 and 0001 numbered the other way
-# round); since, 7 of 8 are identical and 1 had two weak views 0.33 and 0.15 deg / 0.018 apart
-# (one pair's matches differed), the focal 5e-6. The bounds are about 3x that; another view set or
+# run: 2, a SLURM job: its CPUs) one pair's matches can differ, a weak view move and the object
+# frame (fitted to the sparse points and a coarse hull) shift with it. The demo, runs with 2
+# threads against one with 1 thread (bench/poses_repeat.py results/demo --runs N --threads 2
+# --reference-threads 1): before recon.poses numbered the database's images by name, 4 of 6 had
+# every view 0.007 deg / 0.0013 apart (0000 and 0001 numbered the other way round); since, 56 of 58
+# runs were identical, one had two weak views 0.33 and 0.15 deg / 0.018 apart, and one a view
+# 1.2 deg and the frame 0.6 units away while the views' mean rotation after aligning the frames
+# was 0.10 deg. So the cameras are compared after the best similarity between the two frames
+# (recon.metrics.pose_errors: the frame is a gauge; the later stages' metrics are taken against the
+# truth), each view within the bounds below, about 3x the largest seen; another view set or
 # other settings fail the image list or the metrics below. (poses.num_threads: 1 gives the same
-# cameras bit for bit: 3 of 3 runs.)
-SFM_MAX_DEG = 1.0  # each view's rotation
-SFM_MAX_CENTRE = 0.05  # each view's centre, object-frame units (the object fills [-0.9, 0.9]^3)
+# cameras bit for bit: tests/test_poses.py.)
+SFM_MAX_DEG = 3.0  # each view's rotation after the frames' alignment
+SFM_MAX_CENTRE = 0.05  # each view's centre after it, object-frame units (the object fills [-0.9, 0.9]^3)
 SFM_MAX_FOCAL = 5e-3  # relative
 
 
 def _compare_sfm_cameras(a: Path, b: Path) -> None:
-    """Two SfM runs' poses/cameras.json: the same views, their poses and focal length within SfM's
-    run-to-run spread (above). The undistorted image size may differ by a pixel:
-    pycolmap.undistort_camera crops to the largest rectangle without blank pixels, a knife edge
-    that 1e-15 in the cameras can tip (the demo: 190 or 191 x 143 from 192 x 144 photos)."""
-    fa, fb = json.loads(a.read_text())["frames"], json.loads(b.read_text())["frames"]
-    assert [f["image"] for f in fa] == [f["image"] for f in fb]
-    for x, y in zip(fa, fb, strict=True):
-        ma, mb = np.asarray(x["world_to_camera"]), np.asarray(y["world_to_camera"])
-        turn = mb[:3, :3] @ ma[:3, :3].T
-        deg = math.degrees(math.acos(float(np.clip((np.trace(turn) - 1) / 2, -1, 1))))
-        shift = float(np.linalg.norm(mb[:3, :3].T @ mb[:3, 3] - ma[:3, :3].T @ ma[:3, 3]))
-        assert deg <= SFM_MAX_DEG and shift <= SFM_MAX_CENTRE, (x["image"], deg, shift)
-        assert math.isclose(x["K"][0][0], y["K"][0][0], rel_tol=SFM_MAX_FOCAL), (x["image"], x["K"], y["K"])
-        assert abs(x["width"] - y["width"]) <= 1 and abs(x["height"] - y["height"]) <= 1, (x, y)
+    """Two SfM runs' poses/cameras.json: the same views, their poses (after the best similarity
+    between the two object frames) and focal length within SfM's run-to-run spread (above). The
+    undistorted image size may differ by a pixel: pycolmap.undistort_camera crops to the
+    largest rectangle without blank pixels, a knife edge that 1e-15 in the cameras can tip (the
+    demo: 190 or 191 x 143 from 192 x 144 photos)."""
+    from recon.io.cameras import load_cameras
+    from recon.metrics import pose_errors
+
+    ca, cb = load_cameras(a), load_cameras(b)
+    assert [c.image for c in ca] == [c.image for c in cb]
+    e = pose_errors(cb, ca)
+    assert e["max_rotation_deg"] <= SFM_MAX_DEG and e["max_center"] <= SFM_MAX_CENTRE, e
+    for x, y in zip(ca, cb, strict=True):
+        assert math.isclose(x.K[0, 0], y.K[0, 0], rel_tol=SFM_MAX_FOCAL), (x.image, x.K, y.K)
+        assert abs(x.width - y.width) <= 1 and abs(x.height - y.height) <= 1, (x.image, x.width, y.width)
 
 
 def _compare_with_local(slurm: Path, local: Path):
