@@ -29,18 +29,17 @@ from recon.io.images import linear_to_srgb  # noqa: E402
 from recon.io.mesh import Mesh, read_obj  # noqa: E402
 from recon.metrics import align_cameras  # noqa: E402
 
+sys.path.insert(0, str(REPO / "bench"))
+from tabletop_e2e import render  # noqa: E402
+
 
 def grey(mesh: Mesh, cam, light: float) -> np.ndarray:
-    """(h, w, 3) linear render of ``mesh`` with albedo 0.5, no specular lobe."""
-    import torch
-
-    from recon.render import CollocatedRenderer, RenderSettings
-
+    """(h, w, 3) linear render of ``mesh`` with albedo 0.5, no specular lobe
+    (bench/tabletop_e2e.py's renderer, uniform maps: the UVs do not matter)."""
     f = np.asarray(mesh.t_pos_idx)
-    r = CollocatedRenderer(f, np.zeros((1, 2)), np.zeros_like(f), RenderSettings(spp=16, boundary="none"))
-    maps = (torch.full((4, 4, 3), 0.5), torch.zeros((4, 4, 1)), torch.full((4, 4, 1), 0.5))
-    with torch.no_grad():
-        return r.render_torch(torch.tensor(mesh.v_pos, dtype=torch.float32), *maps, [cam], light, seed=1)[0].numpy()
+    maps = {"diffuse": np.full((4, 4, 3), 0.5, np.float32), "specular": np.zeros((4, 4, 1), np.float32),
+            "roughness": np.full((4, 4, 1), 0.5, np.float32)}
+    return render(Mesh(mesh.v_pos, f, np.zeros((1, 2)), np.zeros_like(f)), maps, [cam], light, spp=16)[0]
 
 
 def foot_camera(cams, gt: Mesh, up: np.ndarray, width: int = 480, height: int = 300) -> Camera:
@@ -80,7 +79,7 @@ def main(argv=None) -> int:
         sim = align_cameras(load_cameras(res / "poses" / "cameras.json"), true)
         gt = read_obj(cap / "gt" / "mesh.obj")
         cam = foot_camera(true, gt, up)
-        light = 0.5 * float(np.linalg.norm(cam.center - gt.v_pos.mean(0))) ** 2 / 0.5 * 2.0
+        light = 2.0 * float(np.linalg.norm(cam.center - gt.v_pos.mean(0))) ** 2  # mid-grey at the object
         tiles = [(gt, "truth")]
         for v in args.variants:
             m = read_obj(args.out / "variants" / v / scene / "mesh.obj")

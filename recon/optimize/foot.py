@@ -11,7 +11,7 @@ pulls the surface over it (uncovering it would render black against the table's 
 the optimizer grows a skirt between the bulge and the table instead of carving it (wood-blob:
 8.7 % -> 14.2 % of the surface far from the object, accuracy 0.0065 -> 0.0080).
 
-:func:`foot_weights` finds, per view, the pixels near a silhouette (the mask's or the initial
+:func:`foot_classes` finds, per view, the pixels near a silhouette (the mask's or the initial
 mesh's) whose ray meets the initial mesh, or else the table, within the band (its height above
 the plane, its width around the mesh's foot). They get weight 0 in the image term, as clipped
 pixels do: neither covering nor uncovering them is rewarded, and the surface there follows the
@@ -153,11 +153,6 @@ def _under_overhang(scene, zone: FootZone, axis, B, o, d, t, tp, doubt: np.ndarr
 
 
 KEEP, DOUBT, TABLE, OUTSIDE = 0, 1, 2, 3  # foot_classes
-
-
-def foot_weights(zone: FootZone, cameras, masks: np.ndarray, images: np.ndarray | None = None) -> np.ndarray:
-    """:meth:`FootZone.weights`."""
-    return zone.weights(cameras, masks, images)
 
 
 def foot_classes(zone: FootZone, cameras, masks: np.ndarray, images: np.ndarray | None = None) -> np.ndarray:

@@ -135,20 +135,20 @@ def build_stage(run: Run, index, stage_settings, h, mesh, v_init, covered, map_v
         cls = run.foot.classes(targets.cameras, targets.masks,
                                run.views.photos_at(settings.stage_image_size(stage_settings)))
         inside = targets.masks > 0.5
-        if settings.loss.uncertain_foot_mode == "background":  # the table's pixels become background
-            table = torch.from_numpy(cls == foot.TABLE)[..., None]
-            w = np.where(cls == foot.DOUBT, np.float32(run.foot.weight), np.float32(1.0)).astype(np.float32)
-            targets = dataclasses.replace(targets, images=torch.where(table, torch.zeros(()), targets.images),
-                                          masks=np.where(cls == foot.TABLE, np.float32(0), targets.masks),
-                                          weights=targets.weights * torch.from_numpy(w)[..., None])
-        else:
-            w = np.where(cls > foot.KEEP, np.float32(run.foot.weight), np.float32(1.0)).astype(np.float32)
-            targets = dataclasses.replace(targets, weights=targets.weights * torch.from_numpy(w)[..., None])
+        # background: a mask pixel showing the table becomes background (target 0, full weight) and
+        # only those too dark to tell stay in doubt; exclude: every doubted pixel stays in doubt
+        background = settings.loss.uncertain_foot_mode == "background"
+        table = cls == foot.TABLE if background else np.zeros(cls.shape, bool)
+        w = np.where((cls == foot.DOUBT) if background else (cls > foot.KEEP), np.float32(run.foot.weight),
+                     np.float32(1.0)).astype(np.float32)
+        targets = dataclasses.replace(targets, images=torch.where(torch.from_numpy(table)[..., None], torch.zeros(()),
+                                                                  targets.images),
+                                      masks=np.where(table, np.float32(0), targets.masks),
+                                      weights=targets.weights * torch.from_numpy(w)[..., None])
         foot_out = float(((cls > foot.KEEP) & inside).sum()) / max(float(inside.sum()), 1.0)
-        made = int((cls == foot.TABLE).sum()) if settings.loss.uncertain_foot_mode == "background" else 0
         log.info("stage %d: %.1f %% of the mask pixels at the object's foot in doubt (tabletop masks cannot tell it "
                  "from the table there): %d pixels showing the table made background, %d left out of the image term",
-                 index, 100 * foot_out, made, int((w < 1).sum()))
+                 index, 100 * foot_out, int(table.sum()), int((w < 1).sum()))
     renderer = make_renderer(settings, mesh)
     return Stage(index, stage_settings, h, bbox_scale, mesh, v_init, covered, topo, geom, maps, opt_geom, opt_tex, ls,
                   guard, renderer, targets, foot_out=foot_out)

@@ -195,9 +195,9 @@ def number_images_by_name(db: Path) -> bool:
 
     COLMAP's extraction threads hand their images to the database writer in the order they
     finish, so with several threads two runs number the same photos differently (the demo: 0000
-    and 0001 swapped in 2 of 3 runs with identical keypoints), and incremental mapping, which
-    walks images by id, then grows another model: cameras 1.2e-3 apart. After this the ids,
-    and so every later step, depend only on the photos. True when anything was renumbered."""
+    and 0001 swapped in 4 of 6 runs with identical keypoints), and incremental mapping, which
+    walks images by id, then grows another model: every view 0.007 degrees apart. After this the
+    ids depend only on the photos. True when anything was renumbered."""
     con = sqlite3.connect(db)
     try:
         with con:
