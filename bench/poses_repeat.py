@@ -27,6 +27,7 @@ import os
 import shutil
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -67,7 +68,9 @@ def main(argv=None) -> int:
             ref = load_cameras(args.reference or args.results / "poses" / "cameras.json")
         for i in range(args.runs):
             out = Path(tmp) / f"poses{i}"
+            t0 = time.perf_counter()
             d = poses(out, args.threads)
+            wall = time.perf_counter() - t0
             est = load_cameras(out / "cameras.json")
             common = {c.stem for c in est} & {c.stem for c in ref}
             e = metrics.pose_errors(_subset(est, common), _subset(ref, common))
@@ -77,7 +80,7 @@ def main(argv=None) -> int:
                                + (f" ({t['silhouette_consistency']:.3f})" if t.get("silhouette_consistency") else "")
                                for t in d["trials"])
             sil = d.get("silhouette_consistency")
-            sys.stdout.write(f"run {i}: trials [{trials}] chosen {d.get('chosen_trial')}, consistency "
+            sys.stdout.write(f"run {i} ({wall:.0f} s): trials [{trials}] chosen {d.get('chosen_trial')}, consistency "
                              f"{'-' if sil is None else f'{sil:.3f}'}, reprojection "
                              f"{d['mean_reprojection_error_px']:.3f} px, rotation error "
                              f"{e['mean_rotation_deg']:.2f} deg mean; in the object frame: views "
