@@ -864,3 +864,85 @@ def test_database_images_are_numbered_by_name_whatever_order_extraction_wrote_th
     assert renumbered == written  # ids 1-4 by name, each with its own keypoints, descriptors and frame
     assert pycolmap.Database.open(db).num_keypoints() == sum(pycolmap.Database.open(db).num_keypoints_for_image(i)
                                                               for i in (1, 2, 3, 4))
+
+
+def test_init_mesh_reads_the_sfm_points_and_carves_no_convex_object(synthetic_sfm, tmp_path):
+    """The init_mesh stage's free-space carving (recon.freespace) on SfM's own model: the
+    points it reads lie on the object, and on a blob (no cavity the points see into) nothing
+    of the object is carved."""
+    from recon import init_mesh as rim
+
+    capture, results, _ = synthetic_sfm
+    est = load_cameras(results / "poses" / "cameras.json")
+    s = rim.InitMeshSettings(resolution=64, target_faces=2000)
+    seen = rim.seen_points(results / "poses" / "sparse", est, s)
+    assert seen is not None and len(seen.points) > 100 and np.all(np.bincount(seen.point) >= s.free_space_min_views)
+    gt = read_obj(capture / "gt" / "mesh.obj")
+    sim = metrics.align_cameras(est, load_cameras(capture / "gt" / "cameras.json"))
+    size = float(np.max(gt.bbox()[1] - gt.bbox()[0]))
+    assert np.median(metrics.distance_to_mesh(gt, sim.apply(seen.points))) < 0.01 * size
+    masks = results / "poses" / "undistorted" / "masks"
+    plain = rim.run_init_mesh(results / "poses" / "cameras.json", masks, tmp_path / "plain", s)
+    carved = rim.run_init_mesh(results / "poses" / "cameras.json", masks, tmp_path / "carved", s,
+                               sparse_dir=results / "poses" / "sparse")
+    info = carved["free_space"]
+    assert plain["free_space"] is None and info["points"] == len(seen.points)
+    assert carved["genus"] == plain["genus"] == 0
+    assert info["fraction_of_hull"] < 0.01
+    # no sparse model (given cameras): nothing read, nothing carved, a line in the log
+    none = rim.run_init_mesh(results / "poses" / "cameras.json", masks, tmp_path / "none", s,
+                             sparse_dir=tmp_path / "no_model")
+    assert none["free_space"] is None
+
+
+def test_tabletop_masks_that_took_the_table_are_told_by_the_tables_points():
+    """recon.poses.stage.table_points_in_masks: the share of a COLMAP model's observations of
+    the table's points that fall in their view's mask (a real pycolmap.Reconstruction of
+    points on the plane z = 0 seen by four cameras; the frame is COLMAP's scaled by 2)."""
+    import pycolmap
+
+    from recon.poses.stage import table_points_in_masks
+    from recon.support import SupportPlane
+
+    W = H = 64
+    cams = CameraSet(tuple(Camera(f"images/{k:02d}.png", W, H, intrinsics(W, H, 50),
+                                  look_at([3 * np.cos(t), 3 * np.sin(t), 2.0], [0, 0, 0]))
+                           for k, t in enumerate(np.linspace(0, 2 * np.pi, 4, endpoint=False))))
+    rng = np.random.default_rng(0)
+    table = np.c_[rng.uniform(-1.5, 1.5, (200, 2)), np.zeros(200)]
+    sim = metrics.Similarity(2.0, np.eye(3), np.zeros(3))  # COLMAP's frame -> the cameras'
+    rec = pycolmap.Reconstruction()
+    K = cams.frames[0].K
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=W, height=H, camera_id=1,
+                                                    params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]]))
+    tracks, seen_at = {}, []
+    for k, c in enumerate(cams.frames):
+        xy, z = c.project(table)
+        ok = np.flatnonzero((z > 0) & np.all((xy >= 0) & (xy < [W, H]), axis=1))
+        seen_at.append(xy[ok])
+        w2c = c.world_to_camera  # COLMAP's frame is the cameras' / 2: the same rotation, t / 2
+        im = pycolmap.Image(name=f"{k:02d}.png", points2D=[pycolmap.Point2D(xy=xy[i]) for i in ok], camera_id=1,
+                            image_id=k + 1)
+        rec.add_image_with_trivial_frame(im, pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[:3, :3]), w2c[:3, 3] / 2.0))
+        for j, i in enumerate(ok):
+            tracks.setdefault(i, []).append((k + 1, j))
+    for i, elements in tracks.items():
+        tr = pycolmap.Track()
+        for image_id, j in elements:
+            tr.add_element(image_id, j)
+        rec.add_point3D(table[i] / 2.0, tr)
+    plane = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.0)
+    everything = {c.stem: np.ones((H, W), bool) for c in cams}
+    nothing = {c.stem: np.zeros((H, W), bool) for c in cams}
+    # an object's masks: a disk in the middle of each view; the share is the observations in it
+    yy, xx = np.mgrid[:H, :W]
+    disk = (xx + 0.5 - W / 2) ** 2 + (yy + 0.5 - H / 2) ** 2 < 12**2
+    masks = {c.stem: disk for c in cams}
+    xy = np.concatenate(seen_at)
+    expected = disk[np.floor(xy[:, 1]).astype(int), np.floor(xy[:, 0]).astype(int)].mean()
+    assert table_points_in_masks(rec, sim, plane, cams, everything, 0.05) == 1.0
+    assert table_points_in_masks(rec, sim, plane, cams, nothing, 0.05) == 0.0
+    assert table_points_in_masks(rec, sim, plane, cams, masks, 0.05) == pytest.approx(expected, abs=1e-9)
+    assert 0.0 < expected < 0.3
+    # no point within the tolerance of the plane: nothing to tell
+    assert table_points_in_masks(rec, sim, SupportPlane(np.array([0.0, 0.0, 1.0]), -1.0), cams, masks, 0.05) is None

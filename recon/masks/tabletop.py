@@ -93,6 +93,9 @@ class SegmentSettings:
     hole_tolerance: float = 0.05  # cross-check: share of the other views' misses a voxel survives
     min_standing: float = 0.02  # the hull's silhouette holds at least this share of pixels unlike the table
     min_views: int = 4  # fewer views: no tabletop masks
+    # up to this share of the views may fail (a mask that took the table): the other views' hull
+    # stands in for them, with a warning; more is an error (the masks are not to be trusted)
+    max_failed_views: float = 0.25
     plane: PlaneSettings = field(default_factory=PlaneSettings)
     triangulate_pairs: int = 3  # known cameras: match each view with this many neighbours
 
@@ -101,6 +104,8 @@ class SegmentSettings:
             object.__setattr__(self, "plane", PlaneSettings(**self.plane))
         if isinstance(self.evidence, dict):
             object.__setattr__(self, "evidence", EvidenceSettings(**self.evidence))
+        if not 0.0 <= self.max_failed_views < 0.5:
+            raise ValueError(f"max_failed_views must be in [0, 0.5), got {self.max_failed_views}")
         if self.neighbours < 1 or self.min_views < 2:
             raise ValueError("neighbours must be >= 1 and min_views >= 2")
         if not 0 <= self.min_angle < self.max_angle <= 180:
@@ -349,20 +354,33 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
     t1 = time.perf_counter()
     masks, hull2 = cross_check(masks, cams, plane, hull, band, settings, seeds)
     timings["cross_check_s"] = time.perf_counter() - t1
+    final = hull2 or hull
     bad = []
-    for cam, m in zip(cams, masks, strict=True):
+
+    def all_borders(m):
+        return m[0].any() and m[-1].any() and m[:, 0].any() and m[:, -1].any()
+
+    for i, (cam, m) in enumerate(zip(cams, masks, strict=True)):
         views[cam.stem]["coverage"] = float(m.mean())
         if not m.any():
-            bad.append(f"{cam.stem}: empty mask")
-        elif m[0].any() and m[-1].any() and m[:, 0].any() and m[:, -1].any():
-            bad.append(f"{cam.stem}: the mask touches all four image borders")
-    if bad:
+            bad.append((i, f"{cam.stem}: empty mask"))
+        elif all_borders(m) and not all_borders(final.project(cam)):
+            # a close-up the object fills touches every border with the hull's silhouette too
+            bad.append((i, f"{cam.stem}: the mask touches all four image borders"))
+    if bad and len(bad) <= settings.max_failed_views * len(cams):
+        # a few views failed: the other views' hull stands in for them (repairable, never a stop)
+        for i, _ in bad:
+            masks[i] = final.project(cams[i])
+            views[cams[i].stem]["replaced_by_hull"] = True
+        log.warning("the object could not be separated from the table in %d of %d views; their masks are the "
+                    "silhouettes of the other views' hull (give masks/<stem>.png in the capture to do better):\n  %s",
+                    len(bad), len(cams), "\n  ".join(b for _, b in bad))
+    elif bad:
         raise SegmentError(
-            "the object could not be separated from the table in these views:\n  " + "\n  ".join(bad)
+            "the object could not be separated from the table in these views:\n  " + "\n  ".join(b for _, b in bad)
             + "\nWhat to try: keep the whole object inside every photo with table around it, photograph from "
             "15-60 degrees above the table, use a textured table or a printed mat, or give masks/<stem>.png "
             "for these views in the capture")
-    final = hull2 or hull
     hb_lo, hb_hi = final.bbox()
     corners = np.array([[x, y, z] for x in (hb_lo[0], hb_hi[0]) for y in (hb_lo[1], hb_hi[1])
                         for z in (hb_lo[2], hb_hi[2])])

@@ -214,6 +214,14 @@ def get_plane(wildcards, input):
     return str(Path(input.masks).parent / "plane.json")
 
 
+def get_sparse_dir(wildcards):
+    """SfM's sparse model (poses/sparse), or "" for the capture's own cameras: init_mesh carves
+    the space its points were seen through (recon.freespace)."""
+    if has_cameras(wildcards.capture):
+        return ""
+    return f"{RESULTS}/{wildcards.capture}/poses/sparse"
+
+
 def get_given_cameras(wildcards):
     """The capture's own cameras.json, or "" (SfM)."""
     return (

@@ -1,0 +1,172 @@
+"""Free space seen through the visual hull: SfM's observations carve the concavities that no
+silhouette can (the inside of a bowl: the visual hull puts a dome over it; docs/init_mesh.md).
+
+A 3-D point that a view observed is visible from that view: the segment from the camera's centre
+to the point crosses empty space. Where such segments pass through the visual hull, the hull
+holds space the photos saw through. No silhouette can carve a concavity (every view sees past
+it), but the points SfM triangulated on a concavity's floor are seen through the hull over it.
+
+The pieces (the init_mesh stage puts them together, :func:`recon.init_mesh._carve_free_space`):
+
+- :func:`free_space_counts`: per voxel of the hull's grid, how many distinct points' segments
+  cross it; each segment stops ``stop_voxels`` short of its point (the point's own error, and
+  the surface it lies on).
+- :func:`carve`: the voxels to remove, from the hull's surface inwards and only while removing
+  one keeps the topology (:func:`is_simple`): a concavity is carved, never a hole or a tunnel.
+- :func:`carved_field`: the hull's distance field with them outside, its zero level set midway
+  between carved and kept voxels.
+
+Measured (docs/init_mesh.md): of the hull voxels a bowl's 6,600 observations cross, 0.1 % lie
+inside the bowl, against 37 % of the hull that is not the bowl. Wrong points (a reflection of
+the table in a glaze, a bad match) are few and scattered; their segments are thin streaks, which
+the stage's opening of the free space drops.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from recon.hull import Grid
+
+
+def free_space_counts(centers: np.ndarray, points: np.ndarray, view: np.ndarray, point: np.ndarray,
+                      grid: Grid, inside: np.ndarray, stop_voxels: float = 2.0,
+                      chunk: int = 4096) -> np.ndarray:
+    """(R, R, R) int32: per voxel inside the hull, how many distinct points' segments cross it.
+
+    ``centers`` (V, 3) the cameras' centres; ``points`` (P, 3); observation m is point
+    ``point[m]`` seen from view ``view[m]``. Segments are sampled every half voxel from the
+    camera to ``stop_voxels`` voxels before the point; only the part inside the grid counts."""
+    r = grid.resolution
+    step = float(grid.step)
+    n_pts = len(points)
+    if n_pts == 0 or len(view) == 0:
+        return np.zeros((r, r, r), np.int32)
+    # in voxel index units (index = (world - origin) / step)
+    C = (np.asarray(centers, np.float64)[view] - grid.origin) / step
+    X = (np.asarray(points, np.float64)[point] - grid.origin) / step
+    d = X - C
+    length = np.linalg.norm(d, axis=1)
+    ok = length > stop_voxels + 1.0
+    C, d, length, pid = C[ok], d[ok], length[ok], np.asarray(point)[ok]
+    u = d / length[:, None]
+    # clip each segment to the grid's box [-0.5, r - 0.5]^3 (slab test)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(np.abs(u) > 1e-12, 1.0 / u, np.inf)
+        t0 = (-0.5 - C) * inv
+        t1 = (r - 0.5 - C) * inv
+    tmin = np.nanmax(np.where(np.isfinite(inv), np.minimum(t0, t1), -np.inf), axis=1).clip(0.0)
+    tmax = np.minimum(np.nanmin(np.where(np.isfinite(inv), np.maximum(t0, t1), np.inf), axis=1),
+                      length - stop_voxels)
+    live = tmax > tmin
+    C, u, tmin, tmax, pid = C[live], u[live], tmin[live], tmax[live], pid[live]
+    flat_inside = inside.ravel()
+    keys = []
+    n = np.ceil((tmax - tmin) / 0.5).astype(np.int64) + 1
+    for s in range(0, len(C), chunk):
+        e = min(len(C), s + chunk)
+        ns = n[s:e]
+        rows = np.repeat(np.arange(s, e), ns)
+        k = np.arange(int(ns.sum())) - np.repeat(np.cumsum(ns) - ns, ns)
+        t = np.minimum(tmin[rows] + 0.5 * k, tmax[rows])
+        q = np.rint(C[rows] + t[:, None] * u[rows]).astype(np.int64)
+        good = np.all((q >= 0) & (q < r), axis=1)
+        lin = (q[good, 0] * r + q[good, 1]) * r + q[good, 2]
+        rows = rows[good]
+        hit = flat_inside[lin]
+        keys.append(lin[hit] * n_pts + pid[rows[hit]])
+    keys = np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+    counts = np.bincount(keys // n_pts, minlength=r**3).astype(np.int32)
+    return counts.reshape(r, r, r)
+
+
+_OFFSETS26 = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1) if (a, b, c) != (0, 0, 0)]
+_N6 = np.zeros((3, 3, 3), bool)
+_N6[1, 1, :] = _N6[1, :, 1] = _N6[:, 1, 1] = True
+_N6[1, 1, 1] = False
+_N18 = np.ones((3, 3, 3), bool)
+_N18[::2, ::2, ::2] = False  # the 8 corners
+_N18[1, 1, 1] = False
+_S26 = np.ones((3, 3, 3), bool)
+_S6 = np.zeros((3, 3, 3), bool)
+_S6[1, 1, :] = _S6[1, :, 1] = _S6[:, 1, 1] = True
+
+
+def is_simple(cube: np.ndarray) -> bool:
+    """Whether the centre of the (3, 3, 3) boolean neighbourhood ``cube`` (True: object) is a
+    simple point for the (6, 26) connectivity pair: the object's neighbours in its
+    18-neighbourhood that are 6-adjacent to it form one 6-connected component there, and the
+    empty voxels of its 26-neighbourhood one 26-connected component. The object counts as
+    6-connected because marching cubes joins two voxels that touch only along an edge or at a
+    corner no more than the empty space between them: carved with the (26, 6) pair, a bowl's
+    hull kept its voxel topology and its surface had genus 1,675."""
+    from scipy import ndimage
+
+    empty = ~cube
+    empty[1, 1, 1] = False
+    lab, n_empty = ndimage.label(empty, structure=_S26)
+    if n_empty != 1:
+        return False
+    obj = cube & _N18
+    lab, n = ndimage.label(obj, structure=_S6)
+    if n == 0:
+        return False
+    touching = set(np.unique(lab[_N6 & obj]).tolist()) - {0}
+    return len(touching) == 1
+
+
+
+
+def carve(inside: np.ndarray, free: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
+    """The voxels of ``inside`` (bool (R, R, R)) to remove: those marked ``free`` that are
+    reachable from the empty space through other removed voxels, each removed only while it is
+    a simple point (:func:`is_simple`), so the object's topology is kept. Of the reachable ones
+    the deepest by ``depth`` goes first (the hull's distance field; None: the distance to the
+    empty space): the carving dives through its first opening and grows one cavity outwards.
+    Shallowest first, fronts start at many openings and meet, and the walls between them are
+    not simple (removing one would open a tunnel): on a bowl's hull 7,000 free voxels stayed as
+    such walls, against 1,700 deepest first. Returns a bool mask."""
+    import heapq
+
+    from scipy import ndimage
+
+    obj = np.pad(inside, 1, constant_values=False)
+    cand = np.pad(free & inside, 1, constant_values=False)
+    if depth is None:
+        depth = ndimage.distance_transform_edt(inside)
+    prio = np.pad(-np.asarray(depth, np.float64), 1, constant_values=0.0)
+    removed = np.zeros_like(obj)
+    start = cand & ndimage.binary_dilation(~obj, structure=_S6)
+    heap = [(prio[p], p) for p in map(tuple, np.argwhere(start))]
+    heapq.heapify(heap)
+    queued = np.zeros_like(obj)
+    queued[start] = True
+    while heap:
+        _, (i, j, k) = heapq.heappop(heap)
+        queued[i, j, k] = False
+        if not obj[i, j, k]:
+            continue
+        if not is_simple(obj[i - 1:i + 2, j - 1:j + 2, k - 1:k + 2]):
+            continue
+        obj[i, j, k] = False
+        removed[i, j, k] = True
+        for a, b, c in _OFFSETS26:
+            p = (i + a, j + b, k + c)
+            if cand[p] and obj[p] and not queued[p]:
+                queued[p] = True
+                heapq.heappush(heap, (prio[p], p))
+    return removed[1:-1, 1:-1, 1:-1]
+
+
+def carved_field(field: np.ndarray, removed: np.ndarray, step: float) -> np.ndarray:
+    """``field`` (world units, positive inside) with the ``removed`` voxels outside: its zero
+    level set runs midway between a removed voxel and a kept one, and is the field's own
+    elsewhere."""
+    from scipy import ndimage
+
+    if not removed.any():
+        return field
+    to_removed = ndimage.distance_transform_edt(~removed)  # kept voxels: distance to the nearest removed one
+    to_kept = ndimage.distance_transform_edt(removed)  # removed voxels: distance to the nearest kept one
+    g = np.where(removed, -(to_kept - 0.5), to_removed - 0.5) * float(step)
+    return np.minimum(field, g)
