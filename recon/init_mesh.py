@@ -526,126 +526,14 @@ def mask_agreement(mesh: Mesh, cams: CameraSet, masks: dict[str, np.ndarray], ma
             "per_view": per_view}
 
 
-@dataclass(frozen=True)
-class SeenPoints:
-    """SfM's points and who saw them: observation m is ``points[point[m]]`` seen from the
-    camera centred at ``centers[view[m]]`` (the cameras.json frame)."""
-
-    centers: np.ndarray
-    points: np.ndarray
-    view: np.ndarray
-    point: np.ndarray
-
-
-def seen_points(sparse_dir: str | os.PathLike, cams: CameraSet, settings: InitMeshSettings) -> SeenPoints | None:
-    """The poses stage's sparse model as :class:`SeenPoints` (None, with a log line, when it
-    cannot be read): points seen by at least ``free_space_min_views`` views, each of its
-    observations within ``free_space_max_error_px`` pixels of it through ``cams``."""
-    from recon.optimize.tracks import SfmTracks, TrackError
-
-    stems = [c.stem for c in cams]
-    try:
-        tracks = SfmTracks.load(sparse_dir, cams, stems, min_views=settings.free_space_min_views)
-    except TrackError as e:
-        log.info("no free-space carving: %s", e)
-        return None
-    err = tracks.reprojection(list(cams))
-    bad = np.zeros(len(tracks.points), bool)
-    np.logical_or.at(bad, tracks.point, ~(np.isfinite(err) & (err <= settings.free_space_max_error_px)))
-    ok = ~bad[tracks.point]
-    keep = np.flatnonzero(~bad)
-    remap = -np.ones(len(bad), np.int64)
-    remap[keep] = np.arange(len(keep))
-    centers = np.array([c.center for c in cams])
-    return SeenPoints(centers, tracks.points[keep], tracks.view[ok], remap[tracks.point[ok]])
-
-
-def _near_points(points: np.ndarray, grid: Grid, radius: float) -> np.ndarray:
-    """(R, R, R) bool: the voxels within ``radius`` voxels of a point (its own voxel at least)."""
-    from scipy import ndimage
-
-    r = grid.resolution
-    at = np.rint((np.asarray(points, np.float64).reshape(-1, 3) - grid.origin) / grid.step).astype(np.int64)
-    at = at[np.all((at >= 0) & (at < r), axis=1)]
-    near = np.zeros((r, r, r), bool)
-    near[at[:, 0], at[:, 1], at[:, 2]] = True
-    return ndimage.binary_dilation(near, structure=_ball(radius)) if radius >= 1.0 and at.size else near
-
-
-def _carve_free_space(field: np.ndarray, grid: Grid, seen: SeenPoints,
-                      settings: InitMeshSettings) -> tuple[np.ndarray, dict]:
-    """``field`` with the hull's voxels that SfM's points were seen through removed
-    (:mod:`recon.freespace`), and what was done. Kept only if the surface's genus stays."""
-    from recon.freespace import carve, carved_field, free_space_counts
-
-    t0 = time.perf_counter()
-    inside = field > 0
-    counts = free_space_counts(seen.centers, seen.points, seen.view, seen.point, grid, inside,
-                               settings.free_space_stop_voxels)
-    free = counts >= settings.free_space_points
-    closing = settings.free_space_closing_voxels
-    if closing >= 1.0:
-        from scipy import ndimage
-
-        # the segments are a few voxels apart: the space between them is free too; and the
-        # hull's outer layer, which the segments cross only where they enter, goes with what
-        # lies under it (else it stays as a lid with one opening: the carving keeps the topology)
-        free = ndimage.binary_closing(free, structure=_ball(closing)) & inside
-        # and only where the space is free in bulk: an opening drops the thin streaks of the
-        # segments that graze the surface or cross the hull alone (a wrong point, a reflection)
-        free = ndimage.binary_opening(free, structure=_ball(settings.free_space_opening_voxels))
-        skin = inside & (field < closing * grid.step)
-        free |= ndimage.binary_dilation(free, structure=_ball(closing)) & skin
-        # never within stop_voxels of a point: a point is on the surface
-        free &= ~_near_points(seen.points, grid, settings.free_space_stop_voxels)
-    removed = carve(inside, free, field)
-    info = {"points": int(len(seen.points)), "observations": int(len(seen.view)),
-            "min_points": settings.free_space_points, "voxels_free": int(free.sum()),
-            "voxels_carved": int(removed.sum()),
-            "fraction_of_hull": float(removed.sum() / max(1, inside.sum())), "kept": False}
-    if removed.any():
-        from scipy import ndimage
-
-        # what the carving leaves of the hull's outer layer over the cavity (pieces of a lid
-        # that the topology held: a thread of voxels, a flap) goes: the object is opened by a
-        # ball where the carving was, and only its largest part kept
-        near = ndimage.binary_dilation(removed, structure=_ball(settings.free_space_closing_voxels + 1.0))
-        kept = inside & ~removed
-        thin = kept & near & ~ndimage.binary_opening(kept, structure=_ball(settings.free_space_opening_voxels))
-        thin &= ~_near_points(seen.points, grid, settings.free_space_stop_voxels + 1.0)  # a thin wall holds points
-        kept &= ~thin
-        lab, n = ndimage.label(kept, structure=ndimage.generate_binary_structure(3, 1))
-        if n > 1:
-            kept = lab == 1 + int(np.argmax(np.bincount(lab.ravel())[1:]))
-        removed = inside & ~kept
-        info["voxels_carved"] = int(removed.sum())
-        info["fraction_of_hull"] = float(removed.sum() / max(1, inside.sum()))
-        carved = carved_field(field, removed, grid.step)
-        # the carved surface is as rough as the voxels: smoothed where it was carved
-        smooth = ndimage.gaussian_filter(carved, 1.0)
-        carved = np.where(near, smooth, carved)
-        before = topology(largest_component(isosurface(field, grid, space="grid")))["genus"]
-        after = topology(largest_component(isosurface(carved, grid, space="grid")))["genus"]
-        info.update(genus_before=before, genus_after=after)
-        if after == before:
-            field, info["kept"] = carved, True
-        else:
-            log.warning("free-space carving left out: it changed the hull's genus from %d to %d", before, after)
-    info["seconds"] = time.perf_counter() - t0
-    log.info("free space: %d voxels inside the hull seen through by >= %d of SfM's %d points; %d carved "
-             "(%.1f %% of the hull)%s, %.1f s", info["voxels_free"], settings.free_space_points, info["points"],
-             info["voxels_carved"], 100 * info["fraction_of_hull"], "" if info["kept"] or not removed.any()
-             else " and left out", info["seconds"])
-    return field, info
-
-
 def visual_hull_mesh(cams: CameraSet, masks: dict[str, np.ndarray],
                      settings: InitMeshSettings = InitMeshSettings(),
-                     plane: SupportPlane | None = None, seen: SeenPoints | None = None) -> tuple[Mesh, dict]:
+                     plane: SupportPlane | None = None, seen=None) -> tuple[Mesh, dict]:
     """The remeshed visual hull and statistics; the grid is [-bound, bound]^3, or fitted to
     the hull (:func:`hull_bounds`) when ``bound`` is 0. With a support ``plane`` the hull is
-    cut at it and the base is flat, on the plane. With SfM's ``seen`` points (and
-    ``free_space_points`` > 0) the space they were seen through is carved from it."""
+    cut at it and the base is flat, on the plane. With SfM's ``seen`` points
+    (:class:`recon.freespace.SeenPoints`, and ``free_space_points`` > 0) the space they were seen
+    through is carved from it."""
     t0 = time.perf_counter()
     if settings.bound > 0:
         center, half, source = np.zeros(3), settings.bound, "setting 'bound'"
@@ -655,7 +543,9 @@ def visual_hull_mesh(cams: CameraSet, masks: dict[str, np.ndarray],
     field, _, hull_info = hull_field(cams, masks, grid, settings, plane)
     free_info = None
     if seen is not None and settings.free_space_points > 0:
-        field, free_info = _carve_free_space(field, grid, seen, settings)
+        from recon.freespace import carve_hull
+
+        field, free_info = carve_hull(field, grid, seen, settings)
     t1 = time.perf_counter()
     inside = field > 0
     touches = _touches(inside)
@@ -771,6 +661,8 @@ def run_init_mesh(
                 log.info("no support plane (%s absent): the visual hull of an object in the void", plane_json)
             seen = None
             if sparse_dir is not None and settings.free_space_points > 0:
+                from recon.freespace import seen_points
+
                 seen = seen_points(sparse_dir, cams, settings)
             mesh, stats = visual_hull_mesh(cams, masks, settings, plane, seen)
             topo = check_closed_manifold(mesh, "the visual hull mesh")

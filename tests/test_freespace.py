@@ -97,7 +97,7 @@ def _seen(mesh, cams, points, min_views=3):
     sel = keep[point]
     remap = -np.ones(len(points), int)
     remap[keep] = np.arange(keep.sum())
-    return rim.SeenPoints(centers, points[keep], view[sel], remap[point[sel]])
+    return fs.SeenPoints(centers, points[keep], view[sel], remap[point[sel]])
 
 
 S = rim.InitMeshSettings(resolution=64, target_faces=3000)
@@ -139,7 +139,7 @@ def test_wrong_points_carve_nothing_and_no_points_change_nothing():
     pts = [0.0, 0.0, 0.5] + 0.35 * d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.3, 1.0, (12, 1))
     view = np.concatenate([rng.choice(len(cams), 3, replace=False) for _ in range(12)])
     point = np.repeat(np.arange(12), 3)
-    wrong = rim.SeenPoints(np.array([c.center for c in cams]), pts, view, point)
+    wrong = fs.SeenPoints(np.array([c.center for c in cams]), pts, view, point)
     hull, _ = rim.visual_hull_mesh(cams, masks, S, plane)
     mesh, stats = rim.visual_hull_mesh(cams, masks, S, plane, wrong)
     assert stats["free_space"]["voxels_carved"] == 0
@@ -148,7 +148,7 @@ def test_wrong_points_carve_nothing_and_no_points_change_nothing():
     right = _seen(obj, cams, obj.sample_surface(1500, np.random.default_rng(2)))
     mesh, stats = rim.visual_hull_mesh(cams, masks, S, plane, right)
     assert stats["free_space"]["voxels_carved"] == 0 and np.array_equal(mesh.v_pos, hull.v_pos)
-    none, stats = rim.visual_hull_mesh(cams, masks, S, plane, rim.SeenPoints(np.zeros((0, 3)), np.zeros((0, 3)),
+    none, stats = rim.visual_hull_mesh(cams, masks, S, plane, fs.SeenPoints(np.zeros((0, 3)), np.zeros((0, 3)),
                                                                              np.zeros(0, int), np.zeros(0, int)))
     assert stats["free_space"]["voxels_carved"] == 0 and np.array_equal(none.v_pos, hull.v_pos)
 

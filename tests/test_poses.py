@@ -875,7 +875,9 @@ def test_init_mesh_reads_the_sfm_points_and_carves_no_convex_object(synthetic_sf
     capture, results, _ = synthetic_sfm
     est = load_cameras(results / "poses" / "cameras.json")
     s = rim.InitMeshSettings(resolution=64, target_faces=2000)
-    seen = rim.seen_points(results / "poses" / "sparse", est, s)
+    from recon.freespace import seen_points
+
+    seen = seen_points(results / "poses" / "sparse", est, s)
     assert seen is not None and len(seen.points) > 100 and np.all(np.bincount(seen.point) >= s.free_space_min_views)
     gt = read_obj(capture / "gt" / "mesh.obj")
     sim = metrics.align_cameras(est, load_cameras(capture / "gt" / "cameras.json"))
