@@ -287,7 +287,7 @@ def carve_hull(field: np.ndarray, grid: Grid, seen: SeenPoints, settings) -> tup
         if after == before:
             field, info["kept"] = carved, True
         else:
-            log.warning("free-space carving left out: it changed the hull's genus from %d to %d", before, after)
+            log.info("free-space carving left out: it changed the hull's genus from %d to %d", before, after)
     info["seconds"] = time.perf_counter() - t0
     log.info("free space: %d voxels inside the hull seen through by >= %d of SfM's %d points; %d carved "
              "(%.1f %% of the hull)%s, %.1f s", info["voxels_free"], settings.free_space_points, info["points"],
