@@ -6,7 +6,7 @@ to the point crosses empty space. Where such segments pass through the visual hu
 holds space the photos saw through. No silhouette can carve a concavity (every view sees past
 it), but the points SfM triangulated on a concavity's floor are seen through the hull over it.
 
-The pieces (the init_mesh stage puts them together, :func:`recon.init_mesh._carve_free_space`):
+The pieces (the init_mesh stage puts them together, :func:`carve_hull`, with :func:`seen_points`):
 
 - :func:`free_space_counts`: per voxel of the hull's grid, how many distinct points' segments
   cross it; each segment stops ``stop_voxels`` short of its point (the point's own error, and
@@ -121,8 +121,6 @@ def is_simple(cube: np.ndarray) -> bool:
         return False
     touching = set(np.unique(lab[_N6 & obj]).tolist()) - {0}
     return len(touching) == 1
-
-
 
 
 def carve(inside: np.ndarray, free: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
@@ -241,28 +239,28 @@ def carve_hull(field: np.ndarray, grid: Grid, seen: SeenPoints, settings) -> tup
                                settings.free_space_stop_voxels)
     free = counts >= settings.free_space_points
     closing = settings.free_space_closing_voxels
-    if closing >= 1.0:
-        from scipy import ndimage
+    from scipy import ndimage
 
-        # the segments are a few voxels apart: the space between them is free too; and the
-        # hull's outer layer, which the segments cross only where they enter, goes with what
-        # lies under it (else it stays as a lid with one opening: the carving keeps the topology)
+    if closing >= 1.0:
+        # the segments are a few voxels apart: the space between them is free too
         free = ndimage.binary_closing(free, structure=_ball(closing)) & inside
+    if settings.free_space_opening_voxels >= 1.0:
         # and only where the space is free in bulk: an opening drops the thin streaks of the
         # segments that graze the surface or cross the hull alone (a wrong point, a reflection)
         free = ndimage.binary_opening(free, structure=_ball(settings.free_space_opening_voxels))
+    if closing >= 1.0:
+        # the hull's outer layer, which the segments cross only where they enter, goes with what
+        # lies under it (else it stays as a lid with one opening: the carving keeps the topology)
         skin = inside & (field < closing * grid.step)
         free |= ndimage.binary_dilation(free, structure=_ball(closing)) & skin
-        # never within stop_voxels of a point: a point is on the surface
-        free &= ~_near_points(seen.points, grid, settings.free_space_stop_voxels)
+    # never within stop_voxels of a point: a point is on the surface
+    free &= ~_near_points(seen.points, grid, settings.free_space_stop_voxels)
     removed = carve(inside, free, field)
     info = {"points": int(len(seen.points)), "observations": int(len(seen.view)),
             "min_points": settings.free_space_points, "voxels_free": int(free.sum()),
             "voxels_carved": int(removed.sum()),
             "fraction_of_hull": float(removed.sum() / max(1, inside.sum())), "kept": False}
     if removed.any():
-        from scipy import ndimage
-
         # what the carving leaves of the hull's outer layer over the cavity (pieces of a lid
         # that the topology held: a thread of voxels, a flap) goes: the object is opened by a
         # ball where the carving was, and only its largest part kept

@@ -128,7 +128,8 @@ class InitMeshSettings:
         if not 0.0 <= self.outside_fraction < 0.5:
             raise ValueError(f"outside_fraction must be in [0, 0.5) (a minority of the views), got {self.outside_fraction}")
         if self.free_space_points < 0 or self.free_space_stop_voxels < 0 or self.free_space_max_error_px <= 0 \
-                or self.free_space_min_views < 2:
+                or self.free_space_min_views < 2 or self.free_space_closing_voxels < 0 \
+                or self.free_space_opening_voxels < 0:
             raise ValueError("free_space_points and free_space_stop_voxels must be >= 0, free_space_max_error_px > 0 "
                              f"and free_space_min_views >= 2, got {self.free_space_points}, "
                              f"{self.free_space_stop_voxels}, {self.free_space_max_error_px}, {self.free_space_min_views}")

@@ -62,6 +62,8 @@ class SfmTracks:
         out (two views fix a point's depth only along one baseline)."""
         import pycolmap
 
+        from recon.poses.undistort import keypoints_to_pinhole
+
         sparse_dir = Path(sparse_dir)
         if not (sparse_dir / "points3D.bin").is_file():
             raise TrackError(f"{sparse_dir}: no COLMAP model (points3D.bin); rerun the poses stage")
@@ -85,10 +87,7 @@ class SfmTracks:
                 continue
             ids = np.array([o[0] for o in obs], dtype=np.int64)
             xy = np.array([o[1] for o in obs], dtype=np.float64)
-            rays = np.asarray(rec.cameras[im.camera_id].cam_from_img(xy), dtype=np.float64).reshape(-1, 2)
-            K = by_stem[s].K
-            uv.append(np.stack([K[0, 0] * rays[:, 0] + K[0, 1] * rays[:, 1] + K[0, 2],
-                                K[1, 1] * rays[:, 1] + K[1, 2]], 1))
+            uv.append(keypoints_to_pinhole(rec.cameras[im.camera_id], xy, by_stem[s].K))
             view.append(np.full(len(ids), k, dtype=np.int64))
             pid.append(ids)
         if not view:

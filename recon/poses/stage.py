@@ -22,7 +22,7 @@ from recon.poses.frame import object_frame, points_in_masks, rotate_cameras
 from recon.poses.inputs import image_names, linear_stems, prior_focal, prior_sigma, read_masks
 from recon.poses.mapping import map_views, refine, rescale_model, silhouette_consistency, unregistered_reasons
 from recon.poses.settings import PoseError, PoseSettings
-from recon.poses.undistort import pinhole_camera, undistort_maps, undistort_view
+from recon.poses.undistort import keypoints_to_pinhole, pinhole_camera, undistort_maps, undistort_view
 from recon.segment import read_points_ply, run_tabletop_masks, triangulate_points
 from recon.metrics import Similarity
 from recon.support import SupportPlane, fit_support_plane, load_plane, save_plane
@@ -438,10 +438,8 @@ def table_points_in_masks(rec, sim: Similarity, plane: SupportPlane, cams: Camer
         if not on.any():
             continue
         xy = np.array([o[1] for o, keep in zip(obs, on, strict=True) if keep], dtype=np.float64)
-        rays = np.asarray(rec.cameras[im.camera_id].cam_from_img(xy), dtype=np.float64).reshape(-1, 2)
-        K, m = by_stem[stem].K, masks[stem]
-        u = K[0, 0] * rays[:, 0] + K[0, 1] * rays[:, 1] + K[0, 2]
-        v = K[1, 1] * rays[:, 1] + K[1, 2]
+        u, v = keypoints_to_pinhole(rec.cameras[im.camera_id], xy, by_stem[stem].K).T
+        m = masks[stem]
         j, i = np.floor(u).astype(int), np.floor(v).astype(int)
         ok = np.isfinite(u) & np.isfinite(v) & (j >= 0) & (j < m.shape[1]) & (i >= 0) & (i < m.shape[0])
         inside += int(m[i[ok], j[ok]].sum())

@@ -14,6 +14,13 @@ from recon.io.images import read_exr, read_mask, write_exr, write_mask
 from recon.poses.settings import PoseError
 
 
+def keypoints_to_pinhole(colmap_camera, xy: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels in the undistorted pinhole image (intrinsics ``K``, cameras.json's) of
+    keypoints ``xy`` (N, 2) that COLMAP located in its distorted photo (``colmap_camera``)."""
+    rays = np.asarray(colmap_camera.cam_from_img(np.asarray(xy, np.float64)), dtype=np.float64).reshape(-1, 2)
+    return np.stack([K[0, 0] * rays[:, 0] + K[0, 1] * rays[:, 1] + K[0, 2], K[1, 1] * rays[:, 1] + K[1, 2]], 1)
+
+
 def pinhole_camera(cam, camera_model: str, max_shift_px: float = 0.01):
     """The pinhole camera (square pixels) of the undistorted images of COLMAP camera ``cam``.
 
