@@ -53,7 +53,11 @@ def table_only():
     cams = tabletop_cameras(s)
     plane = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.8)
     half = s.tabletop.table_half_size
-    tex = table_texture(256, half, seed=4)
+    return cams, plane, _render_table(cams, plane, table_texture(256, half, seed=4), half)
+
+
+def _render_table(cams, plane, tex, half):
+    """Exact renders of a bare Lambertian table of albedo map ``tex`` over [-half, half]^2."""
     images = []
     for cam in cams:
         P, hit = plane_points(cam, plane)
@@ -63,7 +67,7 @@ def table_only():
         on = hit & (np.abs(P[..., :2]) < half).all(-1)
         images.append(np.where(on[..., None], cams.light_intensity * a / np.pi * shade[..., None], 0.0)
                       .astype(np.float32))
-    return cams, plane, images
+    return images
 
 
 # ---- geometry ----
@@ -264,6 +268,66 @@ def test_plain_patch_is_never_table(table_only):
     j, i = np.meshgrid(np.arange(w), np.arange(h))
     inner = (j - w / 2) ** 2 + (i - h * 0.6) ** 2 < (0.2 * h - 7) ** 2  # windows inside the disc
     assert inner.sum() > 50 and not e["table"][inner].any() and not e["contrast"][inner].any()
+
+
+def test_a_table_smooth_at_the_working_size_is_found_at_a_coarser_one(table_only):
+    """A weakly textured table (grain wider than the windows: the torus capture of docs/masks.md)
+    looks smooth to the sweep at the working size, which leaves most of it undecided; the sweep
+    at half that size matches it. Its table pixels count only where the fine sweep is undecided,
+    and a plain disc stays undecided at both."""
+    import cv2
+
+    cams, plane, _ = table_only
+    half = 4.0
+    rng = np.random.default_rng(5)
+    grain = cv2.resize(rng.normal(size=(8, 8)).astype(np.float32), (512, 512), interpolation=cv2.INTER_CUBIC)
+    tex = np.repeat((0.3 * np.exp(grain) / np.exp(grain).mean())[..., None], 3, -1)
+    images = _render_table(cams, plane, tex, half)
+    h, w = images[0].shape[:2]
+    j, i = np.meshgrid(np.arange(w), np.arange(h))
+    disc = (j - w / 2) ** 2 + (i - h * 0.6) ** 2 < (0.2 * h) ** 2
+    images = [np.where(disc[..., None], np.float32([0.3, 0.25, 0.2]), im).astype(np.float32) for im in images]
+    settings = ev.EvidenceSettings(work_size=192)  # the views' own size; the coarse sweep at 96
+    coarse = type(cams)(tuple(ev.scaled_camera(c, ev.working_scale(c, 192 // settings.coarse)) for c in cams),
+                        cams.light_intensity)
+    logs = [ev.log_luminance(im) for im in images]
+    clogs = [ev.log_luminance(im, (c.width, c.height)) for im, c in zip(images, coarse, strict=True)]
+    nbrs = neighbours(cams, 6, 4.0, 70.0)
+    heights = [0.05, 0.1, 0.2, 0.4]
+    for v in (0, 7):
+        fine = ev.table_evidence(logs, cams, plane, v, nbrs[v], heights, settings)
+        both = ev.with_coarse(fine, ev.table_evidence(clogs, coarse, plane, v, nbrs[v], heights, settings),
+                              settings.coarse_erode)
+        P, hit = plane_points(cams.frames[v], plane)
+        on = hit & (np.abs(P[..., :2]) < 3.0).all(-1) & ~dilate_px(disc, 6)
+        assert fine["table"][on].mean() < 0.6 and both["table"][on].mean() > fine["table"][on].mean() + 0.2
+        assert both["table"][on].mean() > 0.7  # measured: 0.75 and 0.73
+        # a coarse window reaches 2 x 4 working pixels across the outline (it carves in the 3D vote
+        # only, never the outlines): windows wholly inside the disc are never table
+        inner = (j - w / 2) ** 2 + (i - h * 0.6) ** 2 < (0.2 * h - 2 * settings.window - 4) ** 2
+        assert inner.sum() > 200 and not both["table"][inner].any()
+        assert (both["table"] >= fine["table"]).all()  # it only adds
+
+
+def test_coarse_evidence_counts_only_where_the_fine_is_undecided():
+    shape = (8, 12)
+    fine = {"table": np.zeros(shape, bool), "contrast": np.ones(shape, bool), "z0": np.full(shape, 0.1, np.float32)}
+    fine["contrast"][:, :6] = False  # left half: no contrast at the working size
+    fine["z0"][:, :6] = np.nan
+    coarse = {"table": np.ones((4, 6), bool)}
+    out = ev.with_coarse(fine, coarse, 0)["table"]
+    assert out[:, :6].all() and not out[:, 6:].any()
+    coarse["table"][0, 0] = False  # erosion by one coarse pixel: the hole grows to its 3x3 neighbourhood
+    out = ev.with_coarse(fine, coarse, 1)["table"]
+    assert not out[:4, :4].any() and out[4:, :6].all() and not out[:, 6:].any()
+    with pytest.raises(ValueError, match="coarse"):
+        ev.EvidenceSettings(coarse=0)
+
+
+def dilate_px(mask, r):
+    import cv2
+
+    return cv2.dilate(mask.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
 
 
 def test_zncc_ignores_gain_and_offset():

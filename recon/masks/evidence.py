@@ -50,10 +50,14 @@ class EvidenceSettings:
     rank: int = 2  # per height, the rank-th best neighbour counts (occlusion by the object)
     work_size: int = 640  # long side of the working images
     fine_window: int = 2  # the fine ZNCC at the table's height (best neighbour) for outlines
+    coarse: int = 2  # the sweep again at work_size / coarse, for windows the working size leaves undecided (1: off)
+    coarse_erode: int = 1  # its table pixels shrunk by this many (coarse) px before they count
 
     def __post_init__(self):
         if self.window < 1 or self.rank < 1 or self.work_size < 64:
             raise ValueError("window and rank must be >= 1, work_size >= 64")
+        if self.coarse < 1 or self.coarse_erode < 0 or self.work_size // self.coarse < 32:
+            raise ValueError("coarse must be >= 1 (1: off) with work_size / coarse >= 32, coarse_erode >= 0")
         if not -1 < self.match <= 1 or not -2 <= self.margin < 2 or self.min_contrast < 0:
             raise ValueError("match must be in (-1, 1], margin in [-2, 2), min_contrast >= 0")
 
@@ -264,6 +268,25 @@ def table_evidence(logs: list[np.ndarray], cams: CameraSet, plane: SupportPlane,
     else:
         z0_fine = _rank(np.stack(fine), 1)
     return {"table": table, "z0": z0, "z_up": z_up.astype(np.float32), "contrast": contrast, "z0_fine": z0_fine}
+
+
+def with_coarse(fine: dict, coarse: dict, erode: int) -> dict:
+    """``fine``'s evidence (:func:`table_evidence` at the working size) with the table pixels of
+    ``coarse`` (the same sweep at a smaller working size) added where ``fine`` is undecided: its
+    window has no contrast, or no neighbour gave a correlation. A table's wood or a mat whose
+    grain is finer than the working size's windows resolve looks smooth there and matches at a
+    coarser scale (docs/masks.md, "The sweep at two scales"). The coarse table pixels are shrunk
+    by ``erode`` coarse pixels first: a coarse window that straddles an outline matches the
+    table where the table fills most of it, and its centre may be on the object."""
+    import cv2
+
+    table = coarse["table"].astype(np.uint8)
+    if erode > 0:
+        table = cv2.erode(table, np.ones((2 * erode + 1, 2 * erode + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    h, w = fine["table"].shape
+    up = cv2.resize(table, (w, h), interpolation=cv2.INTER_NEAREST) > 0
+    undecided = ~fine["contrast"] | np.isnan(fine["z0"])
+    return {**fine, "table": fine["table"] | (up & undecided)}
 
 
 def resized(rgb_linear: np.ndarray, size: tuple[int, int]) -> np.ndarray:

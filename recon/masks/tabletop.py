@@ -12,7 +12,10 @@ them, with no learned weights. The decision is made in 3D, by the views together
    resembling it. (The former method called every pixel table whose plane-warped neighbours
    agreed with it, and a plain glaze agrees with itself wherever a warp lands on it: the lower
    half of a glazed bell, hidden behind the object from the neighbours, was lost; see
-   docs/masks.md.)
+   docs/masks.md.) The sweep runs again at half the working size, and its table pixels count
+   where the first leaves a window undecided: a table whose grain is wider than the windows
+   looks smooth at the working size (docs/masks.md, "The sweep at two scales"). Those count
+   in the 3D vote only; the outlines of step 3 keep the working size's evidence.
 2. **A vote in 3D** (:func:`recon.masks.vote.carve`) on a grid standing on the plane: a voxel is
    empty when at least ``carve_votes`` views, and more than ``carve_fraction`` of the views that
    see it, see the table through it; views where it falls outside the frame abstain. What
@@ -49,7 +52,8 @@ from recon.io.cameras import CameraSet
 from recon.masks.common import (MaskError, components_touching, dilate, display_image, erode, fill_holes_covered,
                                 holes)
 from recon.masks.evidence import (EvidenceSettings, log_luminance, plane_difference, resized, scaled_camera,
-                                  sweep_heights, table_evidence, unlit, window_stats, working_scale)
+                                  sweep_heights, table_evidence, unlit, window_stats, with_coarse,
+                                  working_scale)
 from recon.masks.geometry import neighbours, parallax_band
 from recon.masks.graphcut import colour_log_ratio, graph_cut
 from recon.masks.vote import Hull, carve, hole_support
@@ -267,9 +271,36 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
     band = parallax_band(wcams, nbrs, foot, settings.band_parallax_px)
     heights = sweep_heights(band, 0.8 * scale)
 
+    # the sweep again at a coarser working size, for the windows the first leaves undecided
+    ccams = CameraSet(tuple(scaled_camera(c, working_scale(c, ev.work_size // ev.coarse)) for c in cams),
+                      cams.light_intensity) if ev.coarse > 1 else None
+    clogs = None if ccams is None else [log_luminance(im, (w.width, w.height)) for im, w in zip(images, ccams,
+                                                                                                 strict=True)]
+
+    def sweep(previous=None, hidden=None, tolerance=0.0):
+        """Per view (fine, coarse) evidence; ``previous``: an earlier call's (the raised planes kept)."""
+        out = []
+        for i in range(n):
+            kw = dict(hidden_tolerance=tolerance)
+            f = table_evidence(logs, wcams, plane, i, nbrs[i], heights, ev, hidden=None if hidden is None else hidden[0],
+                               z_up=None if previous is None else previous[i][0]["z_up"], **kw)
+            c = None if ccams is None else table_evidence(
+                clogs, ccams, plane, i, nbrs[i], heights, ev, hidden=None if hidden is None else hidden[1],
+                z_up=None if previous is None else previous[i][1]["z_up"], **kw)
+            out.append((f, c))
+        return out
+
+    def table_pixels(evidence):
+        """Per view the table pixels of the working size's sweep (pixel-sharp: they shape the
+        outlines of step 3), and with the coarse sweep's added (they carve in the 3D vote only,
+        where many views must agree: a coarse window reaches twice as far across an outline)."""
+        fine = [f["table"] for f, _ in evidence]
+        return fine, [t if c is None else with_coarse(f, c, ev.coarse_erode)["table"]
+                      for t, (f, c) in zip(fine, evidence, strict=True)]
+
     # ---- step 1: where each view sees the table ----
-    evidence = [table_evidence(logs, wcams, plane, i, nbrs[i], heights, ev) for i in range(n)]
-    tables = [e["table"] for e in evidence]
+    evidence = sweep()
+    tables, carving = table_pixels(evidence)
     dark = [unlit(im, t, settings.unlit_fraction, (w.width, w.height)) & beyond_lit_table(w, plane, t, foot)
             for im, t, w in zip(images, tables, wcams, strict=True)]
     rgbs = [resized(im, (w.width, w.height)) for im, w in zip(images, wcams, strict=True)]
@@ -297,7 +328,7 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
         return [np.where(t | d | (x & (c <= settings.carve_difference)), 0, 1).astype(np.uint8)
                 for t, d, x, c in zip(tables, dark, textured, C, strict=True)]
 
-    hull = carve(vote(tables), wcams, plane, foot, 0.6 * scale, 0.8 * scale, max(32, settings.hull_resolution // 3),
+    hull = carve(vote(carving), wcams, plane, foot, 0.6 * scale, 0.8 * scale, max(32, settings.hull_resolution // 3),
                  **kw)
     if hull is None:
         raise SegmentError(
@@ -307,16 +338,15 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
     box_foot, box_half, box_height = hull.box_on(plane)
     pad = 3 * hull.step
     box = (box_foot, box_half + pad, box_height + pad)
-    fine = carve(vote(tables), wcams, plane, *box, settings.hull_resolution, **kw)
+    fine = carve(vote(carving), wcams, plane, *box, settings.hull_resolution, **kw)
     hull = fine if fine is not None else hull
     # again, occlusion-aware: a neighbour counts where it sees the plane point past this hull
-    hidden = [hull.depth(w) for w in wcams]
-    evidence = [table_evidence(logs, wcams, plane, i, nbrs[i], heights, ev, hidden=hidden, z_up=e["z_up"],
-                               hidden_tolerance=2 * hull.step) for i, e in enumerate(evidence)]
-    tables = [e["table"] for e in evidence]
-    C = differences(hidden, 2 * hull.step)
+    hidden = ([hull.depth(w) for w in wcams], None if ccams is None else [hull.depth(w) for w in ccams])
+    evidence = sweep(evidence, hidden, 2 * hull.step)
+    tables, carving = table_pixels(evidence)
+    C = differences(hidden[0], 2 * hull.step)
     del evidence, hidden
-    fine = carve(vote(tables), wcams, plane, *box, settings.hull_resolution, **kw)
+    fine = carve(vote(carving), wcams, plane, *box, settings.hull_resolution, **kw)
     hull = fine if fine is not None else hull
     # something stands there only if the views see it: textured pixels in the hull's silhouette
     # that differ from the table (a bare table's leftovers of the vote hold none)
