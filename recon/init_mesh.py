@@ -97,10 +97,11 @@ class InitMeshSettings:
     # removes both. A fraction of the grid's side (0.016: 2 voxels at resolution 128); 0: the
     # voted surface
     strict_band: float = 0.016
-    # then a grey-scale closing by a ball of this radius (fraction of the grid's side; 0.024: 3
+    # then a grey-scale closing by a ball of this radius (fraction of the grid's side; 0.032: 4
     # voxels at 128): the shallow tunnels a wrong view's cone leaves where it grazes the surface
-    # inside the band, and any tunnel thinner than about twice this, close. 0: none
-    closing_radius: float = 0.024
+    # inside the band, and any tunnel thinner than about twice this, close. 0: none. (0.024 until
+    # session 20 left glossy-mug genus 2 and the void torus genus 2: docs/init_mesh.md)
+    closing_radius: float = 0.032
     # SfM's points carve the space the views saw them through (recon.freespace): a hull voxel is
     # removed when the segments from the cameras to at least this many distinct points cross it,
     # from the surface inwards and only where the topology stays (a bowl's inside, the dome the
