@@ -666,7 +666,15 @@ def run_init_mesh(
                 from recon.freespace import seen_points
 
                 seen = seen_points(sparse_dir, cams, settings)
-            mesh, stats = visual_hull_mesh(cams, masks, settings, plane, seen)
+            try:
+                mesh, stats = visual_hull_mesh(cams, masks, settings, plane, seen)
+            except InitMeshError as e:
+                if str(e).startswith("the visual hull"):  # the masks' fault: say which and what to do
+                    raise InitMeshError(
+                        f"{e}. The masks are {masks_dir}/<stem>.png (white: the object); where they miss "
+                        "the object or take in background, give masks/<stem>.png in the capture for those "
+                        "views (or all), or photograph the object with nothing lit near it") from e
+                raise
             topo = check_closed_manifold(mesh, "the visual hull mesh")
             write_ply(tmp / "mesh.ply", mesh)
             stats["source"] = "visual_hull"

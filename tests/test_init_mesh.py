@@ -83,6 +83,18 @@ def test_empty_hull_and_missing_masks_are_errors(tmp_path):
     with pytest.raises(rim.InitMeshError, match=r"01\.png: mask is 10x10 but the camera of images/01\.png is 32x32"):
         rim.run_init_mesh(tmp_path / "cameras.json", tmp_path / "masks", tmp_path / "init_mesh")
     assert not (tmp_path / "init_mesh").exists()
+    # through the stage, masks that leave no hull name their folder and what the user can do
+    for c in cams:
+        write_mask(tmp_path / "masks" / f"{c.stem}.png", np.zeros((32, 32), bool))
+    for c in cams.frames[:2]:
+        m = np.zeros((32, 32), bool)
+        m[:4, :4] = True  # a corner of two views: nothing the others agree with
+        write_mask(tmp_path / "masks" / f"{c.stem}.png", m)
+    with pytest.raises(rim.InitMeshError, match=r"the visual hull .*The masks are .*masks/<stem>\.png.*give "
+                                                 r"masks/<stem>\.png in the capture") as err:
+        rim.run_init_mesh(tmp_path / "cameras.json", tmp_path / "masks", tmp_path / "init_mesh")
+    assert str(tmp_path / "masks") in str(err.value)
+    assert not (tmp_path / "init_mesh").exists()
 
 
 def test_too_few_views_is_a_clear_error(tmp_path):
