@@ -11,7 +11,7 @@ from _tabletop_scene import TABLETOP_TEST, tabletop_capture
 from recon import sections
 from recon.masks import evidence as ev
 from recon.masks import tabletop as sg
-from recon.masks.common import MaskError
+from recon.masks.common import MaskError, dilate
 from recon.masks.geometry import flash_shading, neighbours, plane_homography, plane_points
 from recon.masks.graphcut import graph_cut
 from recon.masks.vote import carve, votes_needed
@@ -288,8 +288,7 @@ def test_a_table_smooth_at_the_working_size_is_found_at_a_coarser_one(table_only
     disc = (j - w / 2) ** 2 + (i - h * 0.6) ** 2 < (0.2 * h) ** 2
     images = [np.where(disc[..., None], np.float32([0.3, 0.25, 0.2]), im).astype(np.float32) for im in images]
     settings = ev.EvidenceSettings(work_size=192)  # the views' own size; the coarse sweep at 96
-    coarse = type(cams)(tuple(ev.scaled_camera(c, ev.working_scale(c, 192 // settings.coarse)) for c in cams),
-                        cams.light_intensity)
+    coarse = ev.working_cameras(cams, 192 // settings.coarse)
     logs = [ev.log_luminance(im) for im in images]
     clogs = [ev.log_luminance(im, (c.width, c.height)) for im, c in zip(images, coarse, strict=True)]
     nbrs = neighbours(cams, 6, 4.0, 70.0)
@@ -297,16 +296,16 @@ def test_a_table_smooth_at_the_working_size_is_found_at_a_coarser_one(table_only
     for v in (0, 7):
         fine = ev.table_evidence(logs, cams, plane, v, nbrs[v], heights, settings)
         both = ev.with_coarse(fine, ev.table_evidence(clogs, coarse, plane, v, nbrs[v], heights, settings),
-                              settings.coarse_erode)
+                              settings.coarse_erode)  # (H, W) bool
         P, hit = plane_points(cams.frames[v], plane)
-        on = hit & (np.abs(P[..., :2]) < 3.0).all(-1) & ~dilate_px(disc, 6)
-        assert fine["table"][on].mean() < 0.6 and both["table"][on].mean() > fine["table"][on].mean() + 0.2
-        assert both["table"][on].mean() > 0.7  # measured: 0.75 and 0.73
+        on = hit & (np.abs(P[..., :2]) < 3.0).all(-1) & ~dilate(disc, 6)
+        assert fine["table"][on].mean() < 0.6 and both[on].mean() > fine["table"][on].mean() + 0.2
+        assert both[on].mean() > 0.7  # measured: 0.75 and 0.73
         # a coarse window reaches 2 x 4 working pixels across the outline (it carves in the 3D vote
         # only, never the outlines): windows wholly inside the disc are never table
         inner = (j - w / 2) ** 2 + (i - h * 0.6) ** 2 < (0.2 * h - 2 * settings.window - 4) ** 2
-        assert inner.sum() > 200 and not both["table"][inner].any()
-        assert (both["table"] >= fine["table"]).all()  # it only adds
+        assert inner.sum() > 200 and not both[inner].any()
+        assert (both >= fine["table"]).all()  # it only adds
 
 
 def test_coarse_evidence_counts_only_where_the_fine_is_undecided():
@@ -315,19 +314,13 @@ def test_coarse_evidence_counts_only_where_the_fine_is_undecided():
     fine["contrast"][:, :6] = False  # left half: no contrast at the working size
     fine["z0"][:, :6] = np.nan
     coarse = {"table": np.ones((4, 6), bool)}
-    out = ev.with_coarse(fine, coarse, 0)["table"]
+    out = ev.with_coarse(fine, coarse, 0)
     assert out[:, :6].all() and not out[:, 6:].any()
     coarse["table"][0, 0] = False  # erosion by one coarse pixel: the hole grows to its 3x3 neighbourhood
-    out = ev.with_coarse(fine, coarse, 1)["table"]
+    out = ev.with_coarse(fine, coarse, 1)
     assert not out[:4, :4].any() and out[4:, :6].all() and not out[:, 6:].any()
     with pytest.raises(ValueError, match="coarse"):
         ev.EvidenceSettings(coarse=0)
-
-
-def dilate_px(mask, r):
-    import cv2
-
-    return cv2.dilate(mask.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
 
 
 def test_zncc_ignores_gain_and_offset():

@@ -38,7 +38,7 @@ import numpy as np
 
 from recon.io.cameras import CameraSet
 from recon.masks.common import dilate, erode, fill_holes_covered, holes
-from recon.masks.evidence import scaled_camera, working_scale
+from recon.masks.evidence import working_cameras
 from recon.masks.vote import carve, hole_support
 from recon.support import SupportPlane, aim_point, scene_scale
 
@@ -120,8 +120,7 @@ def consistent_masks(masks: list[np.ndarray], cams: CameraSet,
     n = len(cams)
     if n < settings.min_views:
         return [m.copy() for m in masks], {"applied": False, "reason": f"{n} views (need >= {settings.min_views})"}
-    wcams = CameraSet(tuple(scaled_camera(c, working_scale(c, settings.work_size)) for c in cams),
-                      cams.light_intensity)
+    wcams = working_cameras(cams, settings.work_size)
     small = [_resize_mask(m, w.width, w.height) for m, w in zip(masks, wcams, strict=True)]
     target = aim_point(cams)
     scale = scene_scale(cams, target)

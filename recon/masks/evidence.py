@@ -78,6 +78,11 @@ def scaled_camera(cam: Camera, s: float) -> Camera:
     return Camera(cam.image, w, h, K, cam.world_to_camera.copy())
 
 
+def working_cameras(cams: CameraSet, work_size: int) -> CameraSet:
+    """``cams`` for their images brought to a long side of at most ``work_size``."""
+    return CameraSet(tuple(scaled_camera(c, working_scale(c, work_size)) for c in cams), cams.light_intensity)
+
+
 def log_luminance(rgb_linear: np.ndarray, size: tuple[int, int] | None = None, highpass: float = 0.0) -> np.ndarray:
     """(H, W) float32 log luminance (natural log), floored 4 decades below the 99.5th percentile,
     area-resampled to ``size = (w, h)`` and lightly smoothed (sigma 0.7 px); with ``highpass`` > 0
@@ -270,8 +275,8 @@ def table_evidence(logs: list[np.ndarray], cams: CameraSet, plane: SupportPlane,
     return {"table": table, "z0": z0, "z_up": z_up.astype(np.float32), "contrast": contrast, "z0_fine": z0_fine}
 
 
-def with_coarse(fine: dict, coarse: dict, erode: int) -> dict:
-    """``fine``'s evidence (:func:`table_evidence` at the working size) with the table pixels of
+def with_coarse(fine: dict, coarse: dict, erode: int) -> np.ndarray:
+    """(H, W) bool: ``fine``'s table pixels (:func:`table_evidence` at the working size) with those of
     ``coarse`` (the same sweep at a smaller working size) added where ``fine`` is undecided: its
     window has no contrast, or no neighbour gave a correlation. A table's wood or a mat whose
     grain is finer than the working size's windows resolve looks smooth there and matches at a
@@ -286,7 +291,7 @@ def with_coarse(fine: dict, coarse: dict, erode: int) -> dict:
     h, w = fine["table"].shape
     up = cv2.resize(table, (w, h), interpolation=cv2.INTER_NEAREST) > 0
     undecided = ~fine["contrast"] | np.isnan(fine["z0"])
-    return {**fine, "table": fine["table"] | (up & undecided)}
+    return fine["table"] | (up & undecided)
 
 
 def resized(rgb_linear: np.ndarray, size: tuple[int, int]) -> np.ndarray:

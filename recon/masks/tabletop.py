@@ -51,9 +51,8 @@ import numpy as np
 from recon.io.cameras import CameraSet
 from recon.masks.common import (MaskError, components_touching, dilate, display_image, erode, fill_holes_covered,
                                 holes)
-from recon.masks.evidence import (EvidenceSettings, log_luminance, plane_difference, resized, scaled_camera,
-                                  sweep_heights, table_evidence, unlit, window_stats, with_coarse,
-                                  working_scale)
+from recon.masks.evidence import (EvidenceSettings, log_luminance, plane_difference, resized, sweep_heights,
+                                  table_evidence, unlit, window_stats, with_coarse, working_cameras)
 from recon.masks.geometry import neighbours, parallax_band
 from recon.masks.graphcut import colour_log_ratio, graph_cut
 from recon.masks.vote import Hull, carve, hole_support
@@ -262,7 +261,7 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
             raise SegmentError(f"{cam.image}: image is {img.shape[1]}x{img.shape[0]} but its camera is "
                                f"{cam.width}x{cam.height}")
     ev = settings.evidence
-    wcams = CameraSet(tuple(scaled_camera(c, working_scale(c, ev.work_size)) for c in cams), cams.light_intensity)
+    wcams = working_cameras(cams, ev.work_size)
     logs = [log_luminance(im, (w.width, w.height)) for im, w in zip(images, wcams, strict=True)]
     nbrs = neighbours(wcams, settings.neighbours, settings.min_angle, settings.max_angle)
     target = aim_point(cams)
@@ -272,21 +271,19 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
     heights = sweep_heights(band, 0.8 * scale)
 
     # the sweep again at a coarser working size, for the windows the first leaves undecided
-    ccams = CameraSet(tuple(scaled_camera(c, working_scale(c, ev.work_size // ev.coarse)) for c in cams),
-                      cams.light_intensity) if ev.coarse > 1 else None
-    clogs = None if ccams is None else [log_luminance(im, (w.width, w.height)) for im, w in zip(images, ccams,
-                                                                                                 strict=True)]
+    ccams = working_cameras(cams, ev.work_size // ev.coarse) if ev.coarse > 1 else None
+    clogs = None if ccams is None else [log_luminance(im, (w.width, w.height))
+                                        for im, w in zip(images, ccams, strict=True)]
 
     def sweep(previous=None, hidden=None, tolerance=0.0):
         """Per view (fine, coarse) evidence; ``previous``: an earlier call's (the raised planes kept)."""
         out = []
         for i in range(n):
-            kw = dict(hidden_tolerance=tolerance)
             f = table_evidence(logs, wcams, plane, i, nbrs[i], heights, ev, hidden=None if hidden is None else hidden[0],
-                               z_up=None if previous is None else previous[i][0]["z_up"], **kw)
+                               z_up=None if previous is None else previous[i][0]["z_up"], hidden_tolerance=tolerance)
             c = None if ccams is None else table_evidence(
                 clogs, ccams, plane, i, nbrs[i], heights, ev, hidden=None if hidden is None else hidden[1],
-                z_up=None if previous is None else previous[i][1]["z_up"], **kw)
+                z_up=None if previous is None else previous[i][1]["z_up"], hidden_tolerance=tolerance)
             out.append((f, c))
         return out
 
@@ -295,7 +292,7 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
         outlines of step 3), and with the coarse sweep's added (they carve in the 3D vote only,
         where many views must agree: a coarse window reaches twice as far across an outline)."""
         fine = [f["table"] for f, _ in evidence]
-        return fine, [t if c is None else with_coarse(f, c, ev.coarse_erode)["table"]
+        return fine, [t if c is None else with_coarse(f, c, ev.coarse_erode)
                       for t, (f, c) in zip(fine, evidence, strict=True)]
 
     # ---- step 1: where each view sees the table ----
