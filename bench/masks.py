@@ -21,6 +21,9 @@ object alone; for the stand scene the stand is left out, see docs/masks.md), the
 seconds. ``--only`` picks scenes, ``--make-only`` just renders. Results in ``<out>/masks.json``.
 
     .venv/bin/python bench/masks.py --out /tmp/masks_bench [--only glaze-bell wood-blob] [--make-only]
+
+``--sfm RESULTS CAPTURE``: the same masks on a capture's own poses results (SfM's cameras), e.g.
+``--sfm /tmp/var/results/torus-table /tmp/var/captures/torus-table`` (docs/masks.md).
 """
 
 from __future__ import annotations
@@ -150,6 +153,21 @@ def run_scene(name: str, out: Path, methods: list[str]) -> dict:
     return res
 
 
+def run_on_sfm(results: Path, capture: Path, out: Path) -> dict:
+    """The masks the pipeline makes on a capture's poses results (SfM's cameras and points,
+    ``<results>/poses``) against ``<capture>/gt/masks``: the undistorted views are compared with the
+    true masks pixel for pixel, right only for photos without lens distortion (``recon.synth``'s)."""
+    from recon.masks import run_view_masks
+
+    poses = results / "poses"
+    t0 = time.perf_counter()
+    info = run_view_masks(poses / "undistorted", poses / "cameras.json", out, points=poses / "points.ply")
+    stems = [c.stem for c in load_cameras(poses / "cameras.json")]
+    res = summary(iou_per_view(out, capture / "gt" / "masks", stems), time.perf_counter() - t0)
+    res["method"] = info["method"]
+    return res
+
+
 def print_table(results: dict) -> None:
     head = f"{'scene':<16} {'masks':<9} {'method':<14} {'mean':>6} {'median':>6} {'min':>6} {'worst':>6} {'s':>6}"
     print(head)  # noqa: T201
@@ -169,9 +187,15 @@ def main(argv=None) -> int:
     p.add_argument("--only", nargs="+", choices=sorted(SCENES), help="these scenes (default: all)")
     p.add_argument("--methods", nargs="+", default=["views", "per_view"], choices=["views", "per_view"])
     p.add_argument("--make-only", action="store_true", help="render the captures and stop")
+    p.add_argument("--sfm", nargs=2, type=Path, metavar=("RESULTS", "CAPTURE"),
+                   help="instead: the masks on RESULTS/poses (SfM's cameras) against CAPTURE/gt/masks")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.sfm:
+        name = args.sfm[1].name
+        print_table({name: {"views": run_on_sfm(*args.sfm, args.out / "sfm" / name)}})
+        return 0
     _cached_table_texture()
     names = args.only or list(SCENES)
     if args.make_only:
