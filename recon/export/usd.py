@@ -69,7 +69,7 @@ def write_usd(
     extras : dict, optional
         Stored in the layer's ``customLayerData["recon"]``.
     """
-    from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, UsdUtils, Vt
+    from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, Vt
 
     usda_path, usdz_path = Path(usda_path), Path(usdz_path)
     for key, p in textures.items():
@@ -142,6 +142,33 @@ def write_usd(
     stage.GetRootLayer().Save()
     del stage
 
-    if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(usda_path)), str(usdz_path)):
-        raise OSError(f"{usdz_path}: UsdUtils.CreateNewUsdzPackage failed for {usda_path}")
+    _package(usda_path, [Path(p) for p in textures.values()], usdz_path)
     log.info("wrote %s and %s", usda_path, usdz_path)
+
+
+# The modification time given to every file in the usdz: midnight of 2000-01-01 in local time,
+# so that the zip's DOS date and time fields (local time) read the same on every machine.
+_PACKAGE_MTIME = (2000, 1, 1, 0, 0, 0, 0, 0, -1)
+
+
+def _package(usda_path: Path, textures: list[Path], usdz_path: Path) -> None:
+    """``UsdUtils.CreateNewUsdzPackage`` of the root layer and its textures, byte for byte the
+    same for the same files: the package's zip headers carry each file's modification time, so
+    it is made from copies stamped with one fixed time (the deliverables beside it keep theirs,
+    which Snakemake reads). Without this, two exports of the same inputs differed in the usdz
+    alone (tests/workflow/test_faults.py's re-export compares the folder byte for byte)."""
+    import shutil
+    import tempfile
+    import time
+
+    from pxr import Sdf, UsdUtils
+
+    stamp = time.mktime(_PACKAGE_MTIME)
+    with tempfile.TemporaryDirectory(prefix=".usdz-", dir=usdz_path.parent) as scratch:
+        for src in [usda_path, *textures]:
+            dst = Path(scratch) / src.name
+            shutil.copyfile(src, dst)
+            os.utime(dst, (stamp, stamp))
+        root = Path(scratch) / usda_path.name
+        if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(root)), str(usdz_path)):
+            raise OSError(f"{usdz_path}: UsdUtils.CreateNewUsdzPackage failed for {usda_path}")

@@ -69,3 +69,35 @@ def test_usdz_package(exported):
 def test_usda_has_no_absolute_paths(exported):
     text = exported["usda"].read_text()
     assert str(exported["usda"].parent) not in text and "@/" not in text
+
+
+def test_usdz_is_the_same_for_the_same_files(exported, tmp_path):
+    """The zip's headers carry file times: two packages of the same files, whose times differ
+    (a re-export an hour later), are byte for byte the same, and every entry carries the one
+    fixed stamp. The deliverables beside the usdz keep their own times."""
+    import os
+    import shutil
+
+    from recon.export.usd import _package
+
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("asset.usda", "diffuse.png", "specular.png", "metallic_roughness.png"):
+        shutil.copyfile(exported["usda"].parent / name, src / name)
+    textures = [src / n for n in ("diffuse.png", "specular.png", "metallic_roughness.png")]
+    packages = []
+    for shift in (0, 3600):
+        for p in [src / "asset.usda", *textures]:
+            st = p.stat()
+            os.utime(p, (st.st_atime - shift, st.st_mtime - shift))
+        before = {p.name: p.stat().st_mtime for p in src.iterdir()}
+        out = tmp_path / f"asset{shift}.usdz"
+        _package(src / "asset.usda", textures, out)
+        assert {p.name: p.stat().st_mtime for p in src.iterdir()} == before
+        assert sorted(q.name for q in tmp_path.iterdir()) == sorted(
+            ["src", *(f"asset{s}.usdz" for s in (0, 3600) if s <= shift)])  # no scratch left
+        packages.append(out.read_bytes())
+    assert packages[0] == packages[1]
+    with zipfile.ZipFile(tmp_path / "asset0.usdz") as z:
+        assert {i.date_time for i in z.infolist()} == {(2000, 1, 1, 0, 0, 0)}
+        assert z.read("diffuse.png") == (src / "diffuse.png").read_bytes()
