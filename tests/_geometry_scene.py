@@ -74,6 +74,26 @@ SYNTH_TEST = dict(object="blob", n_views=40, width=256, height=256, format="exr"
                   write_cameras=False, write_gt_linear=False, mesh_level=5, texture_size=512)
 
 
+def ring_of_views():
+    """16 cameras of 160 x 120 px around a torus standing upright (its hole seen from the sides),
+    and its true silhouettes: ``(torus mesh, CameraSet, [mask])``."""
+    from recon.io.cameras import CameraSet, intrinsics, look_at
+    from recon.synth.shapes import torus_grid
+
+    torus, _, _ = torus_grid(64, 24, 0.6, 0.22)
+    v = torus.v_pos @ np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], float).T  # the hole's axis along y
+    torus = type(torus)(v, torus.t_pos_idx)
+    K = intrinsics(160, 120, 40.0)
+    frames = []
+    for k in range(16):
+        az = 2 * np.pi * k / 16
+        el = np.radians(10 + 30 * (k % 3))
+        eye = 4.0 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        frames.append(Camera(f"images/{k:04d}.exr", 160, 120, K.copy(), look_at(eye, [0, 0, 0])))
+    cams = CameraSet(tuple(frames), 1.0)
+    return torus, cams, [silhouette(torus, c) for c in cams]
+
+
 def synth_capture(base: Path, **overrides) -> Path:
     """A recon.synth capture for these settings, rendered into ``base`` unless already there.
 

@@ -207,23 +207,10 @@ def test_run_masks_with_cameras_of_a_void_capture(scene, tmp_path):
 @pytest.fixture(scope="module")
 def ring_views():
     """16 cameras around a torus standing upright (its hole seen from the sides), true silhouettes."""
-    from _geometry_scene import silhouette
+    from _geometry_scene import ring_of_views
 
-    from recon.io.cameras import Camera, CameraSet, intrinsics, look_at
-    from recon.synth.shapes import torus_grid
-
-    torus, _, _ = torus_grid(64, 24, 0.6, 0.22)
-    v = torus.v_pos @ np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], float).T  # the hole's axis along y
-    torus = type(torus)(v, torus.t_pos_idx)
-    K = intrinsics(160, 120, 40.0)
-    frames = []
-    for k in range(16):
-        az = 2 * np.pi * k / 16
-        el = np.radians(10 + 30 * (k % 3))
-        eye = 4.0 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-        frames.append(Camera(f"images/{k:04d}.exr", 160, 120, K.copy(), look_at(eye, [0, 0, 0])))
-    cams = CameraSet(tuple(frames), 1.0)
-    return cams, [silhouette(torus, c) for c in cams]
+    _, cams, truth = ring_of_views()
+    return cams, truth
 
 
 def test_consistent_masks_fill_what_one_view_misses_and_drop_what_it_adds(ring_views):
@@ -264,6 +251,28 @@ def test_consistent_masks_restore_a_dark_rim_along_the_outline(ring_views):
     before, after = _iou(masks[2], truth[2]), _iou(fixed[2], truth[2])
     assert before < 0.85 and after > max(0.9, before + 0.08), (before, after)
     assert not (fixed[2] & ~truth[2]).sum() > 0.05 * truth[2].sum()  # nothing beyond the outline
+
+
+def test_consistent_masks_refuse_masks_that_share_no_object(ring_views):
+    """Every view's mask riddled with notches (a dark, patterned object the flash barely lifts
+    above the background): their voted hull keeps little of any mask, and masks cut to it would
+    be worse than each view's own. The vote is refused and the masks stay as they are."""
+    from recon.masks.consistent import consistent_masks
+
+    cams, truth = ring_views
+    rng = np.random.default_rng(0)
+    masks = []
+    for t in truth:
+        m = t.copy()
+        ys, xs = np.nonzero(t)
+        for k in rng.integers(len(ys), size=12):
+            m[ys[k] - 6:ys[k] + 6, xs[k] - 6:xs[k] + 6] = False
+        masks.append(m)
+    assert 0.5 < np.mean([_iou(m, t) for m, t in zip(masks, truth, strict=True)]) < 0.8
+    fixed, info = consistent_masks(masks, cams)
+    assert not info["applied"] and info["median_kept"] < 0.9 and "do not agree on one object" in info["reason"]
+    for a, b in zip(fixed, masks, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_consistent_masks_need_views(ring_views):

@@ -812,6 +812,48 @@ def test_sfm_support_plane_pass_replaces_the_masks_of_a_tabletop_capture(tmp_pat
     assert abs(moved.height(refit.apply(x[:1]))[0] - plane.height(x[:1])[0] * refit.scale) < 1e-9
 
 
+def test_sfm_without_a_support_plane_makes_the_flash_falloff_masks_consistent(tmp_path):
+    """No plane in the SfM points (an object in the void or on a stand, a real skull): the masks
+    stage's flash-falloff masks are made consistent across the registered views, as the masks
+    stage does with given cameras. A notch the flash missed is filled, a lit wall along the
+    frame's top is dropped; the capture's own mask is never changed. Before, the poses stage
+    kept every mask as it was."""
+    from _geometry_scene import ring_of_views
+
+    from recon.poses.stage import _support_plane_masks, _write_points
+
+    torus, cams, truth = ring_of_views()
+    stage = tmp_path / "poses"
+    save_cameras(stage / "cameras.json", cams)
+    rng = np.random.default_rng(3)
+    pts = torus.v_pos[rng.choice(len(torus.v_pos), 400, replace=False)]
+    _write_points(stage / "points.ply", pts, np.ones(len(pts), bool))
+    masks = [m.copy() for m in truth]
+    ys, xs = np.nonzero(truth[0])
+    cy, cx = int(np.median(ys)), int(xs.min()) + 4
+    masks[0][cy - 6:cy + 6, cx - 3:cx + 8] = False  # a dark patch at the outline
+    masks[9][:12, :] = True  # a lit wall along the top of the frame
+    masks[3][:12, :] = True  # the capture's own mask (wrong too): it stays as given
+    for c, m in zip(cams, masks, strict=True):
+        write_mask(stage / "undistorted" / "masks" / f"{c.stem}.png", m)
+    masks_dir = tmp_path / "masks"
+    masks_dir.mkdir()
+    (masks_dir / "masks.json").write_text(json.dumps({"views": {cams.frames[3].stem: {"source": "given"}}}))
+
+    def iou(a, b):
+        return (a & b).sum() / (a | b).sum()
+
+    info = _support_plane_masks(stage, masks_dir)
+    assert not info["found"] and info["consistent"]["applied"], info
+    assert not (stage / "plane.json").exists()
+    after = [read_mask(stage / "undistorted" / "masks" / f"{c.stem}.png") for c in cams]
+    for k in (0, 9):
+        assert iou(after[k], truth[k]) > max(0.95, iou(masks[k], truth[k]) + 0.02), k
+    np.testing.assert_array_equal(after[3], masks[3])
+    assert cams.frames[3].stem not in info["consistent"]["views"]
+    assert all(iou(a, t) > 0.93 for k, (a, t) in enumerate(zip(after, truth, strict=True)) if k != 3)
+
+
 def test_database_images_are_numbered_by_name_whatever_order_extraction_wrote_them(tmp_path):
     """COLMAP's extraction threads write images in the order they finish; the poses stage
     renumbers them by file name before matching, so every later step (and incremental mapping,

@@ -164,7 +164,7 @@ def run_view_masks(
             log.info("flash-falloff masks made consistent across %d views (hull voxel %.3g)", len(cams),
                      seg_info["step"])
         else:
-            log.info("flash-falloff masks kept view by view: %s", seg_info.get("reason"))
+            (log.warning if "median_kept" in seg_info else log.info)("flash-falloff masks kept view by view: %s", seg_info.get("reason"))
     for stem, m in given.items():
         masks[stem] = m
         views[stem] = {"source": "given", "coverage": float(m.mean())}

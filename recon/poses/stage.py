@@ -318,18 +318,30 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     # ---- object frame ----
     t0 = time.perf_counter()
     xyz, in_mask = points_in_masks(rec, masks)
-    sim, frame_info = object_frame(cams_colmap, xyz, in_mask, und_masks, settings)
-    cams = rotate_cameras(cams_colmap, sim)
-    cams = CameraSet(cams.frames, light_intensity, {"colmap_to_object": sim.matrix.tolist()}, light_known=light_known)
+
+    def place(view_masks: dict) -> tuple[Similarity, CameraSet, dict]:
+        sim, frame_info = object_frame(cams_colmap, xyz, in_mask, view_masks, settings)
+        cams = rotate_cameras(cams_colmap, sim)
+        cams = CameraSet(cams.frames, light_intensity, {"colmap_to_object": sim.matrix.tolist()},
+                         light_known=light_known)
+        save_cameras(tmp / "cameras.json", cams)
+        _write_points(tmp / "points.ply", sim.apply(xyz) if len(xyz) else xyz, in_mask)
+        frame = {"colmap_to_object": sim.to_dict(), **frame_info,
+                 "note": "x_object = scale * rotation @ x_colmap + translation; sparse/ is in COLMAP's frame"}
+        (tmp / "frame.json").write_text(json.dumps(frame, indent=1))
+        return sim, cams, frame
+
+    sim, cams, frame = place(und_masks)
     timings["frame_s"] = time.perf_counter() - t0
-    save_cameras(tmp / "cameras.json", cams)
-    _write_points(tmp / "points.ply", sim.apply(xyz) if len(xyz) else xyz, in_mask)
-    frame = {"colmap_to_object": sim.to_dict(), **frame_info,
-             "note": "x_object = scale * rotation @ x_colmap + translation; sparse/ is in COLMAP's frame"}
-    (tmp / "frame.json").write_text(json.dumps(frame, indent=1))
 
     t0 = time.perf_counter()
     support = _support_plane_masks(tmp, masks_dir, rec=rec, sim=sim)
+    if support.get("consistent", {}).get("applied"):
+        # the flash-falloff masks changed (made consistent across the views): the object's box
+        # is fitted again to their hull
+        from recon.io.images import read_mask
+
+        sim, cams, frame = place({s: read_mask(tmp / "undistorted" / "masks" / f"{s}.png") for s in und_masks})
     if support.get("found"):
         # the frame was fitted to the masks stage's masks, which hold the lit table: fit it again
         # to the object alone (it fills [-1, 1]^3, z along the table's normal), as in the void
@@ -463,15 +475,17 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
     captures whose masks hold (docs/masks.md), 53 % for a torus on a weakly textured table and
     100 % for a vase on a stand over a floor, whose masks took the table."""
     cams = load_cameras(tmp / "cameras.json")
-    plane, info = fit_support_plane(read_points_ply(tmp / "points.ply"), cams)
-    if plane is None:
-        log.info("no support plane in the SfM points (%s): the masks stage's masks are kept", info["reason"])
-        return {k: v for k, v in info.items() if k in ("found", "reason")}
     given = None
     if masks_dir is not None and (masks_dir / "masks.json").is_file():
         views = json.loads((masks_dir / "masks.json").read_text()).get("views", {})
         given = {s for s, v in views.items() if v.get("source") == "given"}
     und_masks = tmp / "undistorted" / "masks"
+    plane, info = fit_support_plane(read_points_ply(tmp / "points.ply"), cams)
+    if plane is None:
+        log.info("no support plane in the SfM points (%s): the masks stage's masks are kept, made consistent "
+                 "across the views", info["reason"])
+        return {**{k: v for k, v in info.items() if k in ("found", "reason")},
+                "consistent": _consistent_falloff_masks(cams, und_masks, given or set())}
     from recon.masks.tabletop import SegmentError
 
     try:
@@ -483,8 +497,9 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
         # floor under a stand, a flat part of the object): the masks stage's masks stay
         shutil.rmtree(tmp / "tabletop", ignore_errors=True)
         log.warning("a plane was found in the SfM points, but the tabletop masks failed, so the masks stage's "
-                    "masks are kept (no support plane). %s", e)
-        return {"found": False, "reason": f"tabletop masks failed: {str(e).splitlines()[0]}"}
+                    "masks are kept (no support plane), made consistent across the views. %s", e)
+        return {"found": False, "reason": f"tabletop masks failed: {str(e).splitlines()[0]}",
+                "consistent": _consistent_falloff_masks(cams, und_masks, given or set())}
     if not (tmp / "tabletop" / "plane.json").is_file():  # the same points, the same plane: not expected
         shutil.rmtree(tmp / "tabletop")
         return {"found": False, "reason": summary["plane"].get("reason")}
@@ -499,9 +514,10 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
             shutil.rmtree(tmp / "tabletop", ignore_errors=True)
             log.warning("a plane was found in the SfM points, but the tabletop masks hold %.0f%% of the table's "
                         "points that the views saw (masks of an object on a table: a few %%): they took the table "
-                        "and are not used, the masks stage's masks are kept (no support plane). Give masks/<stem>.png "
-                        "in the capture if these fail too", 100 * share)
-            return {"found": False, "reason": f"the tabletop masks hold {100 * share:.0f}% of the table's points"}
+                        "and are not used, the masks stage's masks are kept (no support plane), made consistent "
+                        "across the views. Give masks/<stem>.png in the capture if these fail too", 100 * share)
+            return {"found": False, "reason": f"the tabletop masks hold {100 * share:.0f}% of the table's points",
+                    "consistent": _consistent_falloff_masks(cams, und_masks, given or set())}
     und_masks.mkdir(parents=True, exist_ok=True)
     for c in cams:
         os.replace(tmp / "tabletop" / f"{c.stem}.png", und_masks / f"{c.stem}.png")
@@ -510,6 +526,40 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
     shutil.rmtree(tmp / "tabletop")
     log.info("support plane found in the SfM points: tabletop masks in undistorted/masks, plane.json written")
     return {k: v for k, v in summary["plane"].items() if not isinstance(v, (list, dict)) or k == "camera_elevation_deg"}
+
+
+def _consistent_falloff_masks(cams: CameraSet, und_masks: Path, given: set[str]) -> dict:
+    """No support plane: the masks stage's flash-falloff masks in ``und_masks`` (one per view of
+    ``cams``) made consistent across the views with SfM's cameras
+    (:func:`recon.masks.consistent.consistent_masks`: holes and notches the other views cover are
+    filled, the dark rim along the outline comes back, lit background outside the voted hull
+    goes), as the masks stage does for a capture that gives its cameras. The capture's own masks
+    (``given``) vote but are never changed. Returns what was done (``applied``; per view the share
+    of pixels added and removed)."""
+    from recon.io.images import read_mask, write_mask
+    from recon.masks.consistent import ConsistentSettings, consistent_masks
+
+    paths = [und_masks / f"{c.stem}.png" for c in cams]
+    if not all(p.is_file() for p in paths):
+        return {"applied": False, "reason": "not every registered view has a mask"}
+    if all(c.stem in given for c in cams):
+        return {"applied": False, "reason": "every view's mask is given"}
+    before = [read_mask(p) for p in paths]
+    after, info = consistent_masks(before, cams, ConsistentSettings())
+    if not info.get("applied"):
+        (log.warning if "median_kept" in info else log.info)("flash-falloff masks kept view by view: %s", info.get("reason"))
+        return {"applied": False, **{k: info[k] for k in ("reason", "median_kept") if k in info}}
+    changed = {}
+    for cam, p, new in zip(cams, paths, after, strict=True):
+        if cam.stem in given:
+            continue
+        write_mask(p, new)
+        changed[cam.stem] = info["views"][cam.stem]
+    added = float(np.mean([v["added"] for v in changed.values()]))
+    removed = float(np.mean([v["removed"] for v in changed.values()]))
+    log.info("flash-falloff masks made consistent across the %d registered views (hull voxel %.3g): %.1f%% of "
+             "each image added, %.1f%% removed on average", len(cams), info["step"], 100 * added, 100 * removed)
+    return {"applied": True, "step": info["step"], "added": added, "removed": removed, "views": changed}
 
 
 def _object_frame_on_plane(tmp: Path, margin: float) -> Similarity | None:
