@@ -292,3 +292,23 @@ def carve_hull(field: np.ndarray, grid: Grid, seen: SeenPoints, settings) -> tup
              info["voxels_carved"], 100 * info["fraction_of_hull"], "" if info["kept"] or not removed.any()
              else " and left out", info["seconds"])
     return field, info
+
+
+def object_points(seen: SeenPoints, cams: CameraSet, masks: dict[str, np.ndarray], share: float = 0.5) -> np.ndarray:
+    """The points of ``seen`` that are the object's: inside the masks in at least ``share`` of the
+    views that observed them (a wall's or a table's points fall outside). ``(n, 3)``."""
+    inside = np.zeros(len(seen.points))
+    count = np.zeros(len(seen.points))
+    for k, cam in enumerate(cams):
+        m = masks.get(cam.stem)
+        obs = np.flatnonzero(seen.view == k)
+        if m is None or not len(obs):
+            continue
+        xy, z = cam.project(seen.points[seen.point[obs]])
+        j, i = np.floor(xy[:, 0]), np.floor(xy[:, 1])
+        ok = np.isfinite(xy).all(1) & (z > 0) & (j >= 0) & (j < m.shape[1]) & (i >= 0) & (i < m.shape[0])
+        hit = np.zeros(len(obs), bool)
+        hit[ok] = m[i[ok].astype(int), j[ok].astype(int)]
+        np.add.at(count, seen.point[obs], 1.0)
+        np.add.at(inside, seen.point[obs], hit.astype(float))
+    return seen.points[(count > 0) & (inside >= share * np.maximum(count, 1))]

@@ -74,6 +74,9 @@ class InitMeshError(ValueError):
 class InitMeshSettings:
     resolution: int = 128  # grid cells per axis
     bound: float = 0.0  # > 0: the grid spans [-bound, bound]^3; 0: fitted to the hull (see hull_bounds)
+    # a hull the masks leave open (the views cut the object at the frame's edge) is closed at the
+    # object's SfM points' box grown by this share of its size (bounded_by_points)
+    points_margin: float = 0.05
     bound_margin: float = 0.05  # fitted grids extend the coarse hull's box by this fraction
     min_views: int = 2  # a voxel must be seen by this many views to be kept
     mask_margin_px: float = 0.5  # grow the silhouettes by this many pixels (mask edge safety)
@@ -124,6 +127,8 @@ class InitMeshSettings:
             raise ValueError(f"resolution must be >= 8, got {self.resolution}")
         if self.bound < 0 or self.target_faces < 100 or self.min_views < 1:
             raise ValueError("bound must be >= 0, target_faces >= 100 and min_views >= 1")
+        if not 0.0 <= self.points_margin <= 1.0:
+            raise ValueError(f"points_margin must be in [0, 1] (a share of the points' box), got {self.points_margin}")
         if self.plane_closing_voxels < 0:
             raise ValueError(f"plane_closing_voxels must be >= 0, got {self.plane_closing_voxels}")
         if not 0.0 <= self.outside_fraction < 0.5:
@@ -490,6 +495,56 @@ def hull_bounds(cams: CameraSet, masks: dict[str, np.ndarray], settings: InitMes
                         "cameras' focus: the masks probably include background")
 
 
+def bounded_by_points(cams: CameraSet, masks: dict[str, np.ndarray], settings: InitMeshSettings,
+                      points: np.ndarray, plane: SupportPlane | None = None):
+    """A hull the masks leave unbounded on some sides (the views cut the object at the frame's
+    edge, so every view that could close the hull there abstains: a bell whose mouth leaves the
+    bottom of most photos) is closed on those sides at the object's SfM ``points`` (their 0.5-99.5
+    percentile box, grown by ``points_margin`` of its size). Returns ``(center, half, source,
+    (lo, hi, sides))``: the grid's cube and the box, whose ``sides`` ((3, 2) bool: axis, low/high)
+    clip the hull; None with fewer than 20 points or no hull inside the box."""
+    if len(points) < 20:
+        return None
+    lo, hi = np.percentile(points, 0.5, axis=0), np.percentile(points, 99.5, axis=0)
+    size = float(np.max(hi - lo))
+    lo, hi = lo - settings.points_margin * size, hi + settings.points_margin * size
+    center, half = 0.5 * (lo + hi), float(np.max(hi - lo))  # a cube twice the box's longest side
+    grid = Grid.cube(center, half, max(32, settings.resolution // 2))
+    inside = hull_field(cams, masks, grid, settings, plane, tight=False)[0] > 0
+    if not inside.any():
+        return None
+    # an open side: the hull crosses that face of the cube over 2 % of it (a few voxels at a face's
+    # edge, inside the silhouettes of the views that see them there by a margin, are no opening)
+    r = inside.shape[0]
+    sides = np.array([[inside.take(0, a).sum() > 0.02 * r * r, inside.take(-1, a).sum() > 0.02 * r * r]
+                      for a in range(3)])
+    if not sides.any():
+        return None
+    x = grid.points().reshape(*inside.shape, 3)
+    inside &= np.all(((x >= lo) | ~sides[:, 0]) & ((x <= hi) | ~sides[:, 1]), axis=-1)
+    inside[[0, -1]] = inside[:, [0, -1]] = inside[:, :, [0, -1]] = False
+    idx = np.argwhere(inside)
+    if not len(idx):
+        return None
+    a, b = grid.origin + grid.step * (idx.min(0) - 1), grid.origin + grid.step * (idx.max(0) + 1)
+    half = 0.5 * float(np.max(b - a)) * (1.0 + settings.bound_margin) + grid.step
+    names = [f"{'-+'[k]}{'xyz'[i]}" for i in range(3) for k in range(2) if sides[i, k]]
+    return 0.5 * (a + b), half, f"closed at the SfM points on {', '.join(names)}", (lo, hi, sides)
+
+
+def _clip_field(field: np.ndarray, grid: Grid, clip) -> np.ndarray:
+    """``field`` (positive inside) outside :func:`bounded_by_points`' box on its clipped sides."""
+    lo, hi, sides = clip
+    x = grid.points().reshape(*field.shape, 3)
+    d = np.full(field.shape, np.inf, np.float32)
+    for a in range(3):
+        if sides[a, 0]:
+            d = np.minimum(d, x[..., a] - lo[a])
+        if sides[a, 1]:
+            d = np.minimum(d, hi[a] - x[..., a])
+    return np.minimum(field, d.astype(field.dtype))
+
+
 def mask_agreement(mesh: Mesh, cams: CameraSet, masks: dict[str, np.ndarray], max_side: int = 400) -> dict:
     """How well ``mesh``'s silhouettes match the masks: per view the IoU of the pixels whose
     center ray hits the mesh and the mask's pixels (open3d ray casting, on every s-th pixel for
@@ -530,19 +585,33 @@ def mask_agreement(mesh: Mesh, cams: CameraSet, masks: dict[str, np.ndarray], ma
 
 def visual_hull_mesh(cams: CameraSet, masks: dict[str, np.ndarray],
                      settings: InitMeshSettings = InitMeshSettings(),
-                     plane: SupportPlane | None = None, seen=None) -> tuple[Mesh, dict]:
+                     plane: SupportPlane | None = None, seen=None, points: np.ndarray | None = None) -> tuple[Mesh, dict]:
     """The remeshed visual hull and statistics; the grid is [-bound, bound]^3, or fitted to
     the hull (:func:`hull_bounds`) when ``bound`` is 0. With a support ``plane`` the hull is
     cut at it and the base is flat, on the plane. With SfM's ``seen`` points
     (:class:`recon.freespace.SeenPoints`, and ``free_space_points`` > 0) the space they were seen
-    through is carved from it."""
+    through is carved from it. A hull the masks leave unbounded is closed at the object's SfM
+    ``points`` on those sides (:func:`bounded_by_points`), with a warning."""
     t0 = time.perf_counter()
+    clip = None
     if settings.bound > 0:
         center, half, source = np.zeros(3), settings.bound, "setting 'bound'"
     else:
-        center, half, source = hull_bounds(cams, masks, settings, plane=plane)
+        try:
+            center, half, source = hull_bounds(cams, masks, settings, plane=plane)
+        except InitMeshError as e:
+            found = None if points is None or "does not fit" not in str(e) else \
+                bounded_by_points(cams, masks, settings, points, plane)
+            if found is None:
+                raise
+            center, half, source, clip = found
+            log.warning("%s; the masks leave the hull open where the views cut the object at the frame's edge, so "
+                        "it is %s (%d points, grown by %.0f%% of their size)", e, source, len(points),
+                        100 * settings.points_margin)
     grid = Grid.cube(center, half, settings.resolution)
     field, _, hull_info = hull_field(cams, masks, grid, settings, plane)
+    if clip is not None:
+        field = _clip_field(field, grid, clip)
     free_info = None
     if seen is not None and settings.free_space_points > 0:
         from recon.freespace import carve_hull
@@ -666,8 +735,13 @@ def run_init_mesh(
                 from recon.freespace import seen_points
 
                 seen = seen_points(sparse_dir, cams, settings)
+            points = None
+            if seen is not None:
+                from recon.freespace import object_points
+
+                points = object_points(seen, cams, masks)
             try:
-                mesh, stats = visual_hull_mesh(cams, masks, settings, plane, seen)
+                mesh, stats = visual_hull_mesh(cams, masks, settings, plane, seen, points)
             except InitMeshError as e:
                 if str(e).startswith("the visual hull"):  # the masks' fault: say which and what to do
                     raise InitMeshError(

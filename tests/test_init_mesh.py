@@ -424,3 +424,36 @@ def test_a_stand_most_masks_keep_does_not_stop_the_stage():
     assert low.sum() > 4 and np.hypot(mesh.v_pos[low, 0], mesh.v_pos[low, 1]).max() < 0.15
     r = metrics.chamfer(mesh, ball, n_samples=20_000)
     assert r["completeness"] < 0.02  # the ball is all there
+
+
+def test_a_hull_the_frame_leaves_open_is_closed_at_the_sfm_points():
+    """Every side view cuts the object at the frame's bottom, and the two views from above see
+    the space under it behind the object: no view can close the hull there, and it reaches any
+    grid downwards (a bell whose mouth leaves the photos; before, init_mesh stopped with "does not
+    fit"). The object's SfM points close it on that side, at their box grown by points_margin;
+    the sides the masks bound stay the masks'."""
+    sphere = _sphere(0.5)
+    side = [Camera(f"images/{k:02d}.png", 96, 96, intrinsics(96, 96, 30),
+                   look_at([3.0 * np.cos(t), 3.0 * np.sin(t), 0.5], [0, 0, 0.5]))
+            for k, t in enumerate(np.linspace(0, 2 * np.pi, 12, endpoint=False))]
+    top = [Camera(f"images/top{k}.png", 96, 96, intrinsics(96, 96, 40), look_at(eye, [0, 0, 0]))
+           for k, eye in enumerate(([0.3, 0.0, 3.0], [-0.3, 0.1, 3.0]))]
+    cams = CameraSet((*side, *top), 1.0)
+    masks = {c.stem: silhouette(sphere, c) for c in cams}
+    assert all(masks[c.stem][-1].any() for c in side)  # the frame cuts the sphere in every side view
+    settings = rim.InitMeshSettings(resolution=64, target_faces=2000)
+    with pytest.raises(rim.InitMeshError, match="does not fit"):
+        rim.visual_hull_mesh(cams, masks, settings)
+    # the points SfM would triangulate: the surface the side views see, above the frame's cut
+    points = sphere.v_pos[sphere.v_pos[:, 2] > -0.2]
+    mesh, stats = rim.visual_hull_mesh(cams, masks, settings, points=points)
+    assert stats["grid"]["source"] == "closed at the SfM points on -z"
+    assert rim.check_closed_manifold(mesh)["genus"] == 0 and not stats["touches_bounds"]
+    size = np.ptp(points, axis=0).max()
+    lo, hi = mesh.bbox()
+    assert lo[2] == pytest.approx(points[:, 2].min() - settings.points_margin * size, abs=0.05)
+    # the other sides are the masks': the sphere's own outline, not the points' box grown
+    np.testing.assert_allclose(np.concatenate([lo[:2], hi]), [-0.5, -0.5, 0.5, 0.5, 0.5], atol=0.06)
+    # too few points: the stop stays
+    with pytest.raises(rim.InitMeshError, match="does not fit"):
+        rim.visual_hull_mesh(cams, masks, settings, points=points[:10])
