@@ -772,7 +772,8 @@ def run_init_mesh(
 def report_summary(init_mesh_json: str | os.PathLike) -> dict | None:
     """The initial mesh's few numbers the report shows (from ``init_mesh.json``; None when the
     file is absent or unreadable): ``source``, ``faces``, ``genus``, ``mask_iou_mean``,
-    ``mask_iou_min``, ``mask_iou_worst`` ([[stem, iou], ...]) and ``repairs``."""
+    ``mask_iou_min``, ``mask_iou_worst`` ([[stem, iou], ...]), ``repairs`` and ``grid_source``
+    (how the grid was placed: "closed at the SfM points on ..." where the masks left the hull open)."""
     try:
         stats = json.loads(Path(init_mesh_json).read_text())
     except (OSError, ValueError):
@@ -783,4 +784,4 @@ def report_summary(init_mesh_json: str | os.PathLike) -> dict | None:
     genus = stats.get("genus", (stats.get("topology") or {}).get("genus"))
     return {"source": stats.get("source"), "faces": stats.get("faces"), "genus": genus,
             "mask_iou_mean": iou.get("mean"), "mask_iou_min": iou.get("min"), "mask_iou_worst": iou.get("worst", []),
-            "repairs": stats.get("repairs", [])}
+            "repairs": stats.get("repairs", []), "grid_source": (stats.get("grid") or {}).get("source")}

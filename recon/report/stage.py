@@ -21,7 +21,7 @@ bundle are files inside report/, which is written atomically as a whole. It show
                   "phases_source": "summary.json" | "log.jsonl" | null,
                   "stages": [...the summary's per coarse-to-fine stage entries, when present]},
      "initial_mesh": {"source", "faces", "genus", "mask_iou_mean", "mask_iou_min", "mask_iou_worst",
-                      "repairs"} (from init_mesh/init_mesh.json beside optimize/, when present),
+                      "repairs", "grid_source"} (from init_mesh/init_mesh.json beside optimize/, when present),
      "light_intensity": float, "settings": {...}}
 
 NaN and Inf never reach the file (they become null).
@@ -307,6 +307,11 @@ def make_report(
                 f"Initial mesh (visual hull by vote): genus {initial['genus']}, silhouette IoU with the masks mean "
                 f"{initial['mask_iou_mean']:.3f}, lowest {worst} (a view far below the others has a wrong mask)."
                 + (f" Repaired: {'; '.join(initial['repairs'])}." if initial["repairs"] else ""))
+        if str(initial.get("grid_source") or "").startswith("closed at the SfM points"):
+            page.notes.append(
+                f"The views cut the object at the frame's edge, so no mask bounds it there: the initial mesh was "
+                f"{initial['grid_source']} (docs/init_mesh.md). That side of the asset is a guess; photos with the "
+                "whole object in the frame would show it.")
     if metrics["asset"].get("scale_warning"):
         page.notes.append(f"Asset scale: {metrics['asset']['scale_source']}.")
         log.warning("the asset's scale is unknown: %s", metrics["asset"]["scale_source"])

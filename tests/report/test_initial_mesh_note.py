@@ -54,3 +54,14 @@ def test_report_shows_the_initial_meshs_genus_and_mask_agreement(tmp_path, scene
     assert initial["mask_iou_mean"] == stats["mask_iou"]["mean"] and initial["mask_iou_worst"][0][0] == "05"
     page = (tmp_path / "out" / "report" / "index.html").read_text()
     assert "Initial mesh (visual hull by vote): genus 0" in page and "lowest 05 " in page
+    assert initial["grid_source"] == stats["grid"]["source"] and "frame's edge" not in page
+    # a hull the masks left open and init_mesh closed at the SfM points: the report says that side is a guess
+    import json
+
+    saved = json.loads((root / "init_mesh" / "init_mesh.json").read_text())
+    saved["grid"]["source"] = "closed at the SfM points on -z"
+    (root / "init_mesh" / "init_mesh.json").write_text(json.dumps(saved))
+    args["out_dir"] = tmp_path / "out2" / "report"
+    assert make_report(**args, settings=settings)["initial_mesh"]["grid_source"] == "closed at the SfM points on -z"
+    page = (tmp_path / "out2" / "report" / "index.html").read_text()
+    assert "the initial mesh was closed at the SfM points on -z" in page and "is a guess" in page
