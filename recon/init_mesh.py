@@ -520,8 +520,7 @@ def bounded_by_points(cams: CameraSet, masks: dict[str, np.ndarray], settings: I
                       for a in range(3)])
     if not sides.any():
         return None
-    x = grid.points().reshape(*inside.shape, 3)
-    inside &= np.all(((x >= lo) | ~sides[:, 0]) & ((x <= hi) | ~sides[:, 1]), axis=-1)
+    inside &= _clip_field(np.ones(inside.shape, np.float32), grid, (lo, hi, sides)) >= 0
     inside[[0, -1]] = inside[:, [0, -1]] = inside[:, :, [0, -1]] = False
     idx = np.argwhere(inside)
     if not len(idx):
@@ -535,14 +534,14 @@ def bounded_by_points(cams: CameraSet, masks: dict[str, np.ndarray], settings: I
 def _clip_field(field: np.ndarray, grid: Grid, clip) -> np.ndarray:
     """``field`` (positive inside) outside :func:`bounded_by_points`' box on its clipped sides."""
     lo, hi, sides = clip
-    x = grid.points().reshape(*field.shape, 3)
-    d = np.full(field.shape, np.inf, np.float32)
-    for a in range(3):
+    out = field
+    for a in range(3):  # the voxel centres' coordinate along axis a, broadcast over the other two
+        x = (grid.origin[a] + grid.step * np.arange(field.shape[a])).reshape([-1 if k == a else 1 for k in range(3)])
         if sides[a, 0]:
-            d = np.minimum(d, x[..., a] - lo[a])
+            out = np.minimum(out, (x - lo[a]).astype(field.dtype))
         if sides[a, 1]:
-            d = np.minimum(d, hi[a] - x[..., a])
-    return np.minimum(field, d.astype(field.dtype))
+            out = np.minimum(out, (hi[a] - x).astype(field.dtype))
+    return out
 
 
 def mask_agreement(mesh: Mesh, cams: CameraSet, masks: dict[str, np.ndarray], max_side: int = 400) -> dict:
