@@ -253,7 +253,7 @@ def test_consistent_masks_restore_a_dark_rim_along_the_outline(ring_views):
     assert not (fixed[2] & ~truth[2]).sum() > 0.05 * truth[2].sum()  # nothing beyond the outline
 
 
-def test_consistent_masks_refuse_masks_that_share_no_object(ring_views):
+def test_consistent_masks_refuse_masks_that_share_no_object(ring_views, caplog):
     """Every view's mask riddled with notches (a dark, patterned object the flash barely lifts
     above the background): their voted hull keeps little of any mask, and masks cut to it would
     be worse than each view's own. The vote is refused and the masks stay as they are."""
@@ -271,6 +271,7 @@ def test_consistent_masks_refuse_masks_that_share_no_object(ring_views):
     assert 0.5 < np.mean([_iou(m, t) for m, t in zip(masks, truth, strict=True)]) < 0.8
     fixed, info = consistent_masks(masks, cams)
     assert not info["applied"] and info["median_kept"] < 0.9 and "do not agree on one object" in info["reason"]
+    assert "give masks/<stem>.png" in caplog.text  # the user is told what to do
     for a, b in zip(fixed, masks, strict=True):
         np.testing.assert_array_equal(a, b)
 

@@ -32,6 +32,7 @@ needed; the object is not extruded down to it).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +42,8 @@ from recon.masks.common import dilate, erode, fill_holes_covered, holes
 from recon.masks.evidence import working_cameras
 from recon.masks.vote import carve, hole_support
 from recon.support import SupportPlane, aim_point, scene_scale
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -170,9 +173,11 @@ def consistent_masks(masks: list[np.ndarray], cams: CameraSet,
     lo, hi = hull.bbox()
     kept = float(np.median([v["kept"] for v in views.values()]))
     if kept < settings.min_kept:
-        return [m.copy() for m in masks], {
-            "applied": False, "median_kept": kept,
-            "reason": f"the views' masks do not agree on one object: their voted hull keeps a median {100 * kept:.0f}% "
-                      f"of each mask (needs >= {100 * settings.min_kept:.0f}%)"}
+        reason = (f"the views' masks do not agree on one object: their voted hull keeps a median {100 * kept:.0f}% "
+                  f"of each mask (needs >= {100 * settings.min_kept:.0f}%)")
+        log.warning("flash-falloff masks not made consistent: %s. The object is probably darker than what lies behind "
+                    "it in many views (a dark object before a lit wall or floor): give masks/<stem>.png in the "
+                    "capture, or photograph it with nothing lit behind it", reason)
+        return [m.copy() for m in masks], {"applied": False, "median_kept": kept, "reason": reason}
     return out, {"applied": True, "views": views, "step": hull.step, "bbox_lo": lo.tolist(), "bbox_hi": hi.tolist(),
                  "median_kept": kept}

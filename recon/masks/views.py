@@ -164,11 +164,7 @@ def run_view_masks(
             log.info("flash-falloff masks made consistent across %d views (hull voxel %.3g)", len(cams),
                      seg_info["step"])
         else:
-            (log.warning if "median_kept" in seg_info else log.info)(
-            "flash-falloff masks kept view by view: %s%s", seg_info.get("reason"),
-            "; the object is probably darker than what lies behind it in many views (a dark object before a lit "
-            "wall or floor): give masks/<stem>.png in the capture, or photograph it with nothing lit behind it"
-            if "median_kept" in seg_info else "")
+            log.info("flash-falloff masks kept view by view: %s", seg_info.get("reason"))
     for stem, m in given.items():
         masks[stem] = m
         views[stem] = {"source": "given", "coverage": float(m.mean())}

@@ -547,11 +547,7 @@ def _consistent_falloff_masks(cams: CameraSet, und_masks: Path, given: set[str])
     before = [read_mask(p) for p in paths]
     after, info = consistent_masks(before, cams, ConsistentSettings())
     if not info.get("applied"):
-        (log.warning if "median_kept" in info else log.info)(
-            "flash-falloff masks kept view by view: %s%s", info.get("reason"),
-            "; the object is probably darker than what lies behind it in many views (a dark object before a lit "
-            "wall or floor): give masks/<stem>.png in the capture, or photograph it with nothing lit behind it"
-            if "median_kept" in info else "")
+        log.info("flash-falloff masks kept view by view: %s", info.get("reason"))
         return {"applied": False, **{k: info[k] for k in ("reason", "median_kept") if k in info}}
     changed = {}
     for cam, p, new in zip(cams, paths, after, strict=True):
