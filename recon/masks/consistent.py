@@ -181,3 +181,15 @@ def consistent_masks(masks: list[np.ndarray], cams: CameraSet,
         return [m.copy() for m in masks], {"applied": False, "median_kept": kept, "reason": reason}
     return out, {"applied": True, "views": views, "step": hull.step, "bbox_lo": lo.tolist(), "bbox_hi": hi.tolist(),
                  "median_kept": kept}
+
+
+def consistent_derived(masks: dict[str, np.ndarray], cams: CameraSet, given: set[str] | frozenset = frozenset(),
+                       settings: ConsistentSettings = ConsistentSettings()) -> tuple[dict[str, np.ndarray], dict]:
+    """:func:`consistent_masks` over every view's mask (``masks`` by stem, one per camera), where
+    the capture's own masks (``given``) vote but never change. Returns the masks by stem and
+    ``info``, whose ``views`` hold the changed (derived) views only."""
+    fixed, info = consistent_masks([masks[c.stem] for c in cams], cams, settings)
+    if not info.get("applied"):
+        return dict(masks), info
+    out = {c.stem: masks[c.stem] if c.stem in given else m for c, m in zip(cams, fixed, strict=True)}
+    return out, {**info, "views": {s: v for s, v in info["views"].items() if s not in given}}

@@ -24,7 +24,7 @@ from recon.io.cameras import Camera, CameraSet, load_cameras
 from recon.io.images import ImageError, read_exr, read_mask, write_mask
 from recon.io.mesh import read_points
 from recon.masks.common import MaskError
-from recon.masks.consistent import ConsistentSettings, consistent_masks
+from recon.masks.consistent import ConsistentSettings, consistent_derived
 from recon.masks.falloff import MaskSettings, derive_mask
 from recon.masks.given import fit_given_mask
 from recon.masks.points import triangulate_points
@@ -153,14 +153,13 @@ def run_view_masks(
             views[cam.stem] = {"source": "derived", **inf}
         method = "flash_falloff"
         # every view's mask, given or derived, votes; only the derived ones change
-        every = [given.get(c.stem, masks.get(c.stem)) for c in cams]
-        fixed, seg_info = consistent_masks(every, cams, consistent_settings or ConsistentSettings())
+        fixed, seg_info = consistent_derived({**masks, **given}, cams, set(given),
+                                             consistent_settings or ConsistentSettings())
         if seg_info.get("applied"):
             method = "flash_falloff_consistent"
-            for cam, m in zip(cams, fixed, strict=True):
-                if cam.stem not in given:
-                    masks[cam.stem] = m
-                    views[cam.stem].update(seg_info["views"][cam.stem])
+            for stem, v in seg_info["views"].items():
+                masks[stem] = fixed[stem]
+                views[stem].update(v)
             log.info("flash-falloff masks made consistent across %d views (hull voxel %.3g)", len(cams),
                      seg_info["step"])
         else:

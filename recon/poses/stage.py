@@ -537,24 +537,20 @@ def _consistent_falloff_masks(cams: CameraSet, und_masks: Path, given: set[str])
     (``given``) vote but are never changed. Returns what was done (``applied``; per view the share
     of pixels added and removed)."""
     from recon.io.images import read_mask, write_mask
-    from recon.masks.consistent import ConsistentSettings, consistent_masks
+    from recon.masks.consistent import consistent_derived
 
-    paths = [und_masks / f"{c.stem}.png" for c in cams]
-    if not all(p.is_file() for p in paths):
+    paths = {c.stem: und_masks / f"{c.stem}.png" for c in cams}
+    if not all(p.is_file() for p in paths.values()):
         return {"applied": False, "reason": "not every registered view has a mask"}
     if all(c.stem in given for c in cams):
         return {"applied": False, "reason": "every view's mask is given"}
-    before = [read_mask(p) for p in paths]
-    after, info = consistent_masks(before, cams, ConsistentSettings())
+    after, info = consistent_derived({s: read_mask(p) for s, p in paths.items()}, cams, given)
     if not info.get("applied"):
         log.info("flash-falloff masks kept view by view: %s", info.get("reason"))
         return {"applied": False, **{k: info[k] for k in ("reason", "median_kept") if k in info}}
-    changed = {}
-    for cam, p, new in zip(cams, paths, after, strict=True):
-        if cam.stem in given:
-            continue
-        write_mask(p, new)
-        changed[cam.stem] = info["views"][cam.stem]
+    changed = info["views"]
+    for stem in changed:
+        write_mask(paths[stem], after[stem])
     added = float(np.mean([v["added"] for v in changed.values()]))
     removed = float(np.mean([v["removed"] for v in changed.values()]))
     log.info("flash-falloff masks made consistent across the %d registered views (hull voxel %.3g): %.1f%% of "
