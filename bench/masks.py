@@ -24,6 +24,10 @@ seconds. ``--only`` picks scenes, ``--make-only`` just renders. Results in ``<ou
 
 ``--sfm RESULTS CAPTURE``: the same masks on a capture's own poses results (SfM's cameras), e.g.
 ``--sfm /tmp/var/results/torus-table /tmp/var/captures/torus-table`` (docs/masks.md).
+
+``--score RESULTS CAPTURE``: no run, the masks a results folder holds (the masks stage's
+``masks/`` and the poses stage's ``poses/undistorted/masks/``) against ``<capture>/gt/masks``, e.g.
+two results folders of the same capture made by two versions of the code (docs/masks.md).
 """
 
 from __future__ import annotations
@@ -168,15 +172,26 @@ def run_on_sfm(results: Path, capture: Path, out: Path) -> dict:
     return res
 
 
+def score(results: Path, capture: Path) -> dict:
+    """The masks already in ``results`` (``masks/``, then ``poses/undistorted/masks/``: the ones
+    init_mesh reads) against ``<capture>/gt/masks``, for the views both hold."""
+    out = {}
+    for key, folder in (("masks stage", results / "masks"), ("poses", results / "poses" / "undistorted" / "masks")):
+        stems = sorted(p.stem for p in folder.glob("*.png") if (capture / "gt" / "masks" / p.name).is_file())
+        if stems:
+            out[key] = {**summary(iou_per_view(folder, capture / "gt" / "masks", stems), 0.0), "method": "as saved"}
+    return out
+
+
 def print_table(results: dict) -> None:
-    head = f"{'scene':<16} {'masks':<9} {'method':<14} {'mean':>6} {'median':>6} {'min':>6} {'worst':>6} {'s':>6}"
+    head = f"{'scene':<16} {'masks':<11} {'method':<14} {'mean':>6} {'median':>6} {'min':>6} {'worst':>6} {'s':>6}"
     print(head)  # noqa: T201
     print("-" * len(head))  # noqa: T201
     for name, r in results.items():
-        for key in ("views", "per_view"):
+        for key in ("views", "per_view", "masks stage", "poses"):
             if key in r:
                 m = r[key]
-                print(f"{name:<16} {key:<9} {m['method']:<14} {m['iou_mean']:6.3f} {m['iou_median']:6.3f} "  # noqa: T201
+                print(f"{name:<16} {key:<11} {m['method']:<14} {m['iou_mean']:6.3f} {m['iou_median']:6.3f} "  # noqa: T201
                       f"{m['iou_min']:6.3f} {m['worst_view']:>6} {m['seconds']:6.0f}")
 
 
@@ -189,9 +204,18 @@ def main(argv=None) -> int:
     p.add_argument("--make-only", action="store_true", help="render the captures and stop")
     p.add_argument("--sfm", nargs=2, type=Path, metavar=("RESULTS", "CAPTURE"),
                    help="instead: the masks on RESULTS/poses (SfM's cameras) against CAPTURE/gt/masks")
+    p.add_argument("--score", nargs=2, type=Path, metavar=("RESULTS", "CAPTURE"),
+                   help="instead: the masks already in RESULTS (masks/, poses/undistorted/masks/) against CAPTURE/gt/masks")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.score:
+        found = score(*args.score)
+        if not found:
+            print(f"no masks in {args.score[0]} with a true mask in {args.score[1]}/gt/masks")  # noqa: T201
+            return 1
+        print_table({args.score[1].name: found})
+        return 0
     if args.sfm:
         name = args.sfm[1].name
         print_table({name: {"views": run_on_sfm(*args.sfm, args.out / "sfm" / name)}})
