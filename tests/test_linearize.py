@@ -509,7 +509,7 @@ def test_jpeg_exif_exposure_normalization(tmp_path):
     assert rec["images"]["short"]["focal_length_source"] == "35mm_equivalent"
 
 
-def test_jpeg_focal_length_from_the_focal_plane_resolution(tmp_path):
+def test_jpeg_focal_length_from_the_focal_plane_resolution(tmp_path, caplog):
     """A DSLR's JPEG without a 35 mm equivalent (the Canon EOS Rebel T3): FocalLength x
     FocalPlaneXResolution (unit inch) at the width the camera wrote (PixelXDimension), scaled to
     the file's width and to the linear views' (linearize.max_size); a 35 mm equivalent wins
@@ -517,6 +517,7 @@ def test_jpeg_focal_length_from_the_focal_plane_resolution(tmp_path):
     Flash tag is read (bit 0: fired)."""
     from PIL import Image
 
+    from recon.linearize import metadata
     from recon.linearize.metadata import flash_fired, focal_length_px, read_meta
 
     images = tmp_path / "cap" / "images"
@@ -550,7 +551,12 @@ def test_jpeg_focal_length_from_the_focal_plane_resolution(tmp_path):
     v = read_meta(save("both", f35=88, written_width=4272))
     assert focal_length_px(v, W, H) == (pytest.approx(88 * np.hypot(W, H) / np.hypot(36, 24)), "35mm_equivalent")
     v = read_meta(save("tiny", res=1e6, written_width=4272))  # a 0.1 mm sensor: a wrong tag
-    assert focal_length_px(v, W, H) == (None, None) and flash_fired(v) is None
+    metadata._IMPLAUSIBLE_PLANE.clear()
+    with caplog.at_level(logging.WARNING, logger="recon.linearize.metadata"):
+        assert focal_length_px(v, W, H) == (None, None) and flash_fired(v) is None
+        assert focal_length_px(read_meta(save("tiny2", res=1e6, written_width=4272)), W, H) == (None, None)
+    assert caplog.text.count("wide sensor") == 1  # once for a set of photos that all say the same
+    (images / "tiny2.jpg").unlink()
     (images / "tiny.jpg").unlink()
     rec = linearize_capture(tmp_path / "cap", tmp_path / "linear", LinearizeSettings(max_size=W // 2))
     e = rec["images"]["t3"]

@@ -276,6 +276,38 @@ def test_consistent_masks_refuse_masks_that_share_no_object(ring_views, caplog):
         np.testing.assert_array_equal(a, b)
 
 
+def test_consistent_masks_outvote_the_views_that_took_something_else(ring_views):
+    """A dark object before a lit floor: in 6 of the 16 views the flash-falloff mask took the
+    floor's lit patch or the stand's base below the object and missed the object. A vote over
+    all views that tolerates a quarter of misses carves the object away and is refused; the
+    views that agree with the bare majority's hull vote again, and the 6 others take the
+    silhouette of that hull."""
+    from recon.masks.consistent import ConsistentSettings, consistent_masks
+
+    cams, truth = ring_views
+    wrong = (1, 3, 6, 9, 11, 14)
+    masks = [t.copy() for t in truth]
+    for k in wrong:
+        h, w = truth[k].shape
+        yy, xx = np.mgrid[:h, :w]
+        ys, xs = np.nonzero(truth[k])
+        cy, cx = ys.max() + 0.12 * h, xs.mean() + 0.1 * (k - 7) * w / 16  # a lit patch below the object
+        masks[k] = ((yy - cy) / (0.1 * h)) ** 2 + ((xx - cx) / (0.2 * w)) ** 2 < 1
+    alone, info = consistent_masks(masks, cams, ConsistentSettings(agreement=0))
+    assert not info["applied"] and "share no 3D region" in info["reason"]
+    fixed, info = consistent_masks(masks, cams)
+    assert info["applied"]
+    assert sorted(info["outliers"]) == sorted(cams.frames[k].stem for k in wrong)
+    for k in range(16):
+        # a wrong view's silhouette: the torus's hole is open where the 10 views carve it
+        assert _iou(fixed[k], truth[k]) > (0.7 if k in wrong else 0.88), (k, _iou(fixed[k], truth[k]))
+    assert np.mean([_iou(fixed[k], truth[k]) for k in range(16) if k not in wrong]) > 0.93
+    # the capture's own masks always vote: given as trusted, a wrong view is no outlier (and the
+    # vote over it is refused again)
+    _, info = consistent_masks(masks, cams, trusted=set(wrong))
+    assert not info["applied"]
+
+
 def test_consistent_masks_need_views(ring_views):
     from recon.io.cameras import CameraSet
     from recon.masks.consistent import consistent_masks

@@ -266,6 +266,9 @@ SENSOR_WIDTH_MM = (1.0, 80.0)
 outside, the tag is taken for a wrong one and not used."""
 
 
+_IMPLAUSIBLE_PLANE: set[tuple[float, float]] = set()  # (px/mm, width) values already warned about
+
+
 def _focal_plane_px(view: View, width: int) -> float | None:
     """FocalLength x FocalPlaneXResolution in pixels of a ``width``-wide image: the resolution
     refers to the width the camera wrote (a JPEG's PixelXDimension, else the file's own), so a
@@ -276,8 +279,13 @@ def _focal_plane_px(view: View, width: int) -> float | None:
     ref = view.focal_plane_width or width
     sensor_mm = ref / view.focal_plane_px_per_mm
     if not SENSOR_WIDTH_MM[0] <= sensor_mm <= SENSOR_WIDTH_MM[1]:
-        log.warning("%s: FocalPlaneXResolution %.4g px/mm implies a %.3g mm wide sensor: not used for the focal "
-                    "length", view.path, view.focal_plane_px_per_mm, sensor_mm)
+        # once per value: a camera writes the same tag into every photo
+        key = (round(float(view.focal_plane_px_per_mm), 6), round(float(ref), 3))
+        (log.debug if key in _IMPLAUSIBLE_PLANE else log.warning)(
+            "%s: FocalPlaneXResolution %.4g px/mm implies a %.3g mm wide sensor: not used for the focal length%s",
+            view.path, view.focal_plane_px_per_mm, sensor_mm,
+            "" if key in _IMPLAUSIBLE_PLANE else " (nor in the other photos that say the same)")
+        _IMPLAUSIBLE_PLANE.add(key)
         return None
     return view.focal_length_mm * view.focal_plane_px_per_mm * width / ref
 

@@ -66,6 +66,13 @@ class ConsistentSettings:
     # dark vase on a stand (IoU against the truth 0.41 -> 0.03); 0.85 on views of a torus each
     # cut by 12 random notches (tests/test_masks.py: IoU 0.66 -> 0.54)
     min_kept: float = 0.9
+    # a refused vote is taken again among the views that agree (:func:`agreeing_views`): a mask
+    # agrees when its IoU with the silhouette of the hull a bare majority votes (a voxel goes when
+    # more than ``consensus_tolerance`` of the views say outside) is at least ``agreement`` times
+    # the views' upper quartile; at least ``min_agreeing`` of the views must (0: no second vote)
+    consensus_tolerance: float = 0.45
+    agreement: float = 0.75
+    min_agreeing: float = 1 / 3
 
     def __post_init__(self):
         if not 0 <= self.tolerance < 0.5 or not 0 <= self.hole_tolerance < 0.5:
@@ -124,17 +131,77 @@ def fill_enclosed(mask: np.ndarray, support: np.ndarray, enclosed: float) -> np.
     return fill_holes_covered(mask, support) if holes(mask).any() else mask
 
 
-def consistent_masks(masks: list[np.ndarray], cams: CameraSet,
-                     settings: ConsistentSettings = ConsistentSettings()) -> tuple[list[np.ndarray], dict]:
+def consistent_masks(masks: list[np.ndarray], cams: CameraSet, settings: ConsistentSettings = ConsistentSettings(),
+                     trusted: frozenset[int] | set[int] = frozenset()) -> tuple[list[np.ndarray], dict]:
     """The masks (one (H, W) bool per camera of ``cams``) made consistent across the views (module
     docstring). Returns the masks and ``info`` (per view the share of pixels added and removed,
     the hull's voxel size and bounding box); with fewer than ``min_views`` views the masks come
-    back unchanged."""
+    back unchanged.
+
+    When the vote of all views is refused (``min_kept``), the views that agree are found
+    (:func:`agreeing_views`) and the vote is taken again among them (``trusted`` views, the
+    capture's own masks, always count as agreeing); the others take the hull's silhouette.
+    """
     n = len(cams)
     if n < settings.min_views:
         return [m.copy() for m in masks], {"applied": False, "reason": f"{n} views (need >= {settings.min_views})"}
     wcams = working_cameras(cams, settings.work_size)
     small = [_resize_mask(m, w.width, w.height) for m, w in zip(masks, wcams, strict=True)]
+    values = [m.astype(np.uint8) for m in small]
+    out, info = _vote(masks, cams, wcams, values, list(range(n)), settings)
+    if info.get("applied"):
+        return out, info
+    voters = agreeing_views(values, wcams, settings, trusted) if settings.agreement > 0 else None
+    out2, info2 = (out, info) if voters is None or len(voters) == n else _vote(masks, cams, wcams, values, voters,
+                                                                                 settings)
+    if not info2.get("applied"):
+        if "median_kept" in info:
+            log.warning("flash-falloff masks not made consistent: %s. The object is probably darker than what lies "
+                        "behind it in many views (a dark object before a lit wall or floor): give masks/<stem>.png in "
+                        "the capture, or photograph it with nothing lit behind it", info["reason"])
+        return out, info
+    outliers = [cams.frames[i].stem for i in range(n) if i not in set(voters)]
+    log.warning("flash-falloff masks: %d of %d views disagree with the others (%s): those views take the silhouette "
+                "of the hull the other %d voted (median kept %.0f%%)", len(outliers), n,
+                ", ".join(outliers[:12]) + (", ..." if len(outliers) > 12 else ""), len(voters),
+                100 * info2["median_kept"])
+    return out2, {**info2, "outliers": outliers, "all_views_median_kept": info.get("median_kept")}
+
+
+def agreeing_views(values: list[np.ndarray], wcams: CameraSet, settings: ConsistentSettings,
+                   trusted: frozenset[int] | set[int] = frozenset()) -> list[int] | None:
+    """The indices of the views whose masks agree with the hull a bare majority of the views
+    votes (``consensus_tolerance``): IoU of the mask with that hull's silhouette at least
+    ``agreement`` times the upper quartile of the views' IoUs. None when fewer than
+    ``min_views`` and than ``min_agreeing`` of the views agree, or no majority hull exists.
+
+    A dark object before a lit floor: the flash-falloff masks of a third of the views take the
+    floor or the stand's base, not the object. No 3D region is inside their masks and the
+    others' at once, so a vote over all views that tolerates a quarter of misses carves the
+    object away; a bare majority keeps it, and the views that took something else stand out
+    by their small overlap with its silhouette.
+    """
+    target = aim_point(wcams)
+    half = 0.6 * scene_scale(wcams, target)
+    up = _up(wcams)
+    ground = SupportPlane.through(target - half * up, up)
+    hull = carve(values, wcams, ground, target, half, 2 * half, 48, settings.consensus_tolerance, seed_point=target)
+    if hull is None:
+        return None
+    iou = []
+    for v, w in zip(values, wcams, strict=True):
+        m, p = v > 0, hull.project(w)
+        iou.append(float((m & p).sum()) / max(float((m | p).sum()), 1.0))
+    bar = settings.agreement * float(np.percentile(iou, 75))
+    voters = [i for i, a in enumerate(iou) if a >= bar or i in trusted]
+    if len(voters) < max(settings.min_views, settings.min_agreeing * len(values)):
+        return None
+    return voters
+
+
+def _vote(masks, cams, wcams, values, voters: list[int], settings: ConsistentSettings) -> tuple[list[np.ndarray], dict]:
+    """:func:`consistent_masks`' vote among the views ``voters``; the other views take the hull's
+    silhouette (shrunk by a voxel's footprint)."""
     target = aim_point(cams)
     scale = scene_scale(cams, target)
     up = _up(cams)
@@ -143,9 +210,10 @@ def consistent_masks(masks: list[np.ndarray], cams: CameraSet,
     def floor_under(center, h):
         return SupportPlane.through(np.asarray(center) - h * up, up)
 
-    values = [m.astype(np.uint8) for m in small]
+    vcams = CameraSet(tuple(wcams.frames[i] for i in voters), wcams.light_intensity)
+    vvalues = [values[i] for i in voters]
     ground = floor_under(target, half)
-    coarse = carve(values, wcams, ground, target, half, 2 * half, 48, settings.tolerance, seed_point=target)
+    coarse = carve(vvalues, vcams, ground, target, half, 2 * half, 48, settings.tolerance, seed_point=target)
     if coarse is None:
         return [m.copy() for m in masks], {"applied": False, "reason": "the views' masks share no 3D region"}
     lo, hi = coarse.bbox()
@@ -153,31 +221,33 @@ def consistent_masks(masks: list[np.ndarray], cams: CameraSet,
     extent = 0.5 * float(np.max(hi - lo)) + 2 * coarse.step
     ground = floor_under(center, extent)
     box = (center, extent, 2 * extent)
-    hull = carve(values, wcams, ground, *box, settings.resolution, settings.tolerance, seed_point=center)
+    hull = carve(vvalues, vcams, ground, *box, settings.resolution, settings.tolerance, seed_point=center)
     if hull is None:
         return [m.copy() for m in masks], {"applied": False, "reason": "the fine hull vanished"}
-    others = hole_support(values, wcams, ground, *box, settings.resolution, settings.hole_tolerance)
+    others = hole_support(vvalues, vcams, ground, *box, settings.resolution, settings.hole_tolerance)
+    others = {voters[k]: v for k, v in others.items()}
     out, views = [], {}
     for i, (cam, w) in enumerate(zip(cams, wcams, strict=True)):
         m = masks[i]
-        keep = _resize_mask(dilate(hull.project(w), 1), cam.width, cam.height)
-        support = _resize_mask(others[i], cam.width, cam.height)
-        new = fill_enclosed(m, support, settings.enclosed)
-        if settings.rim:
-            # the silhouette of the voxels' centres: the splats reach a footprint beyond them
-            new = new | _resize_mask(erode(others[i], _footprint(w, hull)), cam.width, cam.height)
-        new = new & keep
+        silhouette = hull.project(w)
+        if i in others:
+            keep = _resize_mask(dilate(silhouette, 1), cam.width, cam.height)
+            support = _resize_mask(others[i], cam.width, cam.height)
+            new = fill_enclosed(m, support, settings.enclosed)
+            if settings.rim:
+                # the silhouette of the voxels' centres: the splats reach a footprint beyond them
+                new = new | _resize_mask(erode(others[i], _footprint(w, hull)), cam.width, cam.height)
+            new = new & keep
+        else:  # a view that disagrees with the others: its mask is the hull's silhouette
+            new = _resize_mask(erode(silhouette, _footprint(w, hull)), cam.width, cam.height)
         views[cam.stem] = {"added": float((new & ~m).mean()), "removed": float((m & ~new).mean()),
                            "kept": float((new & m).sum() / max(int(m.sum()), 1))}
         out.append(new)
     lo, hi = hull.bbox()
-    kept = float(np.median([v["kept"] for v in views.values()]))
+    kept = float(np.median([views[cams.frames[i].stem]["kept"] for i in voters]))
     if kept < settings.min_kept:
         reason = (f"the views' masks do not agree on one object: their voted hull keeps a median {100 * kept:.0f}% "
                   f"of each mask (needs >= {100 * settings.min_kept:.0f}%)")
-        log.warning("flash-falloff masks not made consistent: %s. The object is probably darker than what lies behind "
-                    "it in many views (a dark object before a lit wall or floor): give masks/<stem>.png in the "
-                    "capture, or photograph it with nothing lit behind it", reason)
         return [m.copy() for m in masks], {"applied": False, "median_kept": kept, "reason": reason}
     return out, {"applied": True, "views": views, "step": hull.step, "bbox_lo": lo.tolist(), "bbox_hi": hi.tolist(),
                  "median_kept": kept}
@@ -188,7 +258,8 @@ def consistent_derived(masks: dict[str, np.ndarray], cams: CameraSet, given: set
     """:func:`consistent_masks` over every view's mask (``masks`` by stem, one per camera), where
     the capture's own masks (``given``) vote but never change. Returns the masks by stem and
     ``info``, whose ``views`` hold the changed (derived) views only."""
-    fixed, info = consistent_masks([masks[c.stem] for c in cams], cams, settings)
+    fixed, info = consistent_masks([masks[c.stem] for c in cams], cams, settings,
+                                   trusted={i for i, c in enumerate(cams) if c.stem in given})
     if not info.get("applied"):
         return dict(masks), info
     out = {c.stem: masks[c.stem] if c.stem in given else m for c, m in zip(cams, fixed, strict=True)}
