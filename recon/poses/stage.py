@@ -555,7 +555,10 @@ def _consistent_falloff_masks(cams: CameraSet, und_masks: Path, given: set[str])
     removed = float(np.mean([v["removed"] for v in changed.values()]))
     log.info("flash-falloff masks made consistent across the %d registered views (hull voxel %.3g): %.1f%% of "
              "each image added, %.1f%% removed on average", len(cams), info["step"], 100 * added, 100 * removed)
-    return {"applied": True, "step": info["step"], "added": added, "removed": removed, "views": changed}
+    # views whose masks took something else (the floor, a stand's base) and that took the hull of
+    # the agreeing views instead (recon.masks.consistent.agreeing_views)
+    return {"applied": True, "step": info["step"], "added": added, "removed": removed, "views": changed,
+            "outliers": info.get("outliers", [])}
 
 
 def _object_frame_on_plane(tmp: Path, margin: float) -> Similarity | None:
