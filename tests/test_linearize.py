@@ -518,14 +518,14 @@ def test_jpeg_focal_length_from_the_focal_plane_resolution(tmp_path, caplog):
     from PIL import Image
 
     from recon.linearize import metadata
-    from recon.linearize.metadata import flash_fired, focal_length_px, read_meta
+    from recon.linearize.metadata import camera_up, flash_fired, focal_length_px, read_meta
 
     images = tmp_path / "cap" / "images"
     images.mkdir(parents=True)
     rgb, _ = scene(0, highlight=False)
     enc = np.round(_srgb_encode(rgb * 0.5) * 255).astype(np.uint8)
 
-    def save(name, f35=None, res=4720.441988950276, unit=2, written_width=None, flash=None):
+    def save(name, f35=None, res=4720.441988950276, unit=2, written_width=None, flash=None, orientation=None):
         ex = Image.Exif()
         ifd = ex.get_ifd(0x8769)
         ifd[0x829A], ifd[0x829D], ifd[0x8827], ifd[0x920A] = 0.1, 18.0, 800, 55.0
@@ -536,6 +536,8 @@ def test_jpeg_focal_length_from_the_focal_plane_resolution(tmp_path, caplog):
             ifd[0xA405] = f35
         if flash is not None:
             ifd[0x9209] = flash
+        if orientation:
+            ex[0x0112] = orientation
         Image.fromarray(enc).save(images / f"{name}.jpg", exif=ex, quality=95)
         return images / f"{name}.jpg"
 
@@ -550,6 +552,9 @@ def test_jpeg_focal_length_from_the_focal_plane_resolution(tmp_path, caplog):
     assert focal_length_px(v, W, H) == (pytest.approx(55.0 * W / 23.0), "focal_plane_resolution")
     v = read_meta(save("both", f35=88, written_width=4272))
     assert focal_length_px(v, W, H) == (pytest.approx(88 * np.hypot(W, H) / np.hypot(36, 24)), "35mm_equivalent")
+    v = read_meta(save("turned", written_width=4272, orientation=6))  # a phone held upright
+    assert v.orientation == 6 and camera_up(v.orientation) == (-1.0, 0.0, 0.0)
+    assert read_meta(images / "t3.jpg").orientation is None and camera_up(None) == (0.0, -1.0, 0.0)
     v = read_meta(save("tiny", res=1e6, written_width=4272))  # a 0.1 mm sensor: a wrong tag
     metadata._IMPLAUSIBLE_PLANE.clear()
     with caplog.at_level(logging.WARNING, logger="recon.linearize.metadata"):
@@ -562,6 +567,7 @@ def test_jpeg_focal_length_from_the_focal_plane_resolution(tmp_path, caplog):
     e = rec["images"]["t3"]
     assert e["focal_length_source"] == "focal_plane_resolution"
     assert e["focal_length_px"] == pytest.approx(t3 * W / 4272 * e["width"] / W)
+    assert rec["images"]["turned"]["orientation"] == 6 and e["orientation"] is None  # for the object frame's up
 
 
 def test_real_dslr_jpegs_focal_length(tmp_path, shared_data):

@@ -279,6 +279,32 @@ def test_object_frame_centers_scales_and_levels():
         np.testing.assert_allclose(xy0, xy1, atol=1e-6)
 
 
+def test_object_frame_up_from_photos_stored_sideways():
+    """A phone held upright stores its pixels sideways and says so in EXIF Orientation (6): each
+    camera's -y is then horizontal, and their mean says nothing about up (a ring of tangents).
+    With the orientations from linear.json the frame's z is the world's up again."""
+    c0 = np.array([1.0, 2.0, -1.0])
+    u = np.array([0.7, 0.6, 0.2])
+    u /= np.linalg.norm(u)
+    a = np.cross(u, [1.0, 0.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(u, a)
+    frames = []
+    for k in range(12):
+        ang = 2 * np.pi * k / 12
+        W = look_at(c0 + 6.0 * (np.cos(ang) * a + np.sin(ang) * b) + 0.5 * u, c0, up=u).copy()
+        W[:2] = np.stack([W[1], -W[0]])  # rolled a quarter turn: the displayed up is the stored -x
+        frames.append(Camera(f"images/{k:02d}.jpg", 48, 64, intrinsics(48, 64, 40), W))
+    cams = CameraSet(tuple(frames))
+    rng = np.random.default_rng(1)
+    pts = c0 + 0.5 * rng.normal(size=(500, 3)) * [1.0, 0.8, 0.6]
+    s = rp.PoseSettings(frame={"hull_resolution": 0})
+    sim, _ = rp.object_frame(cams, pts, np.ones(len(pts), bool), {}, s, {f"{k:02d}": 6 for k in range(12)})
+    np.testing.assert_allclose(sim.rotation @ u, [0, 0, 1], atol=1e-6)
+    sim, _ = rp.object_frame(cams, pts, np.ones(len(pts), bool), {}, s)  # the pixels taken as upright
+    assert abs((sim.rotation @ u)[2]) < 0.9
+
+
 def test_object_frame_box_from_the_visual_hull():
     """Sparse points on one side only: the masks' hull still gives the whole object's box."""
     sphere = Mesh(icosphere(3).v_pos * 0.5, icosphere(3).t_pos_idx)

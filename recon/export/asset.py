@@ -275,7 +275,11 @@ def _up_from_cameras(settings: ExportSettings, cameras_json) -> np.ndarray:
                 cams = load_cameras(cameras_json)
             except ValueError as e:
                 raise ExportError(str(e)) from e
-            R = up_rotation(cams, settings.min_up_agreement)
+            up = cams.extra.get("up")
+            if isinstance(up, list) and len(up) == 3 and np.all(np.isfinite(up)) and np.linalg.norm(up) > 0:
+                R = rotation_to_y(up)  # the poses stage's frame (SfM): its up, however the photos are turned
+            else:
+                R = up_rotation(cams, settings.min_up_agreement)
     return R
 
 

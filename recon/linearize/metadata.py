@@ -63,6 +63,7 @@ class View:
     # camera's JPEG (the width the camera wrote; None: the file's own width)
     focal_plane_width: int | None = None
     flash: int | None = None  # EXIF Flash (bit 0: fired; None: the file does not say)
+    orientation: int | None = None  # EXIF Orientation 1-8: how the stored pixels are turned for display
     neutral: np.ndarray | None = None  # as-shot camera neutral (RAW)
     color: dict | None = None  # colour tags (RAW)
     is_dng: bool = False
@@ -115,6 +116,7 @@ def _read_raw_meta(path: Path) -> View:
             desc = raw.color_desc
             cam_wb = np.asarray(raw.camera_whitebalance, dtype=np.float64)
             rgb_xyz = np.asarray(raw.rgb_xyz_matrix, dtype=np.float64).copy()
+            flip = int(getattr(raw.sizes, "flip", 0) or 0)
     except rawpy.LibRawError as e:
         raise LinearizeError(
             f"{path}: not a RAW file rawpy can read ({type(e).__name__}: {e}); "
@@ -130,6 +132,9 @@ def _read_raw_meta(path: Path) -> View:
     view.focal_length_35mm = tag_number(tag("FocalLengthIn35mmFilm")) or None
     view.focal_plane_px_per_mm = _focal_plane_px_per_mm(tag)
     view.flash = _flash(tag("Flash"))
+    # IFD0's (the image as a whole), else LibRaw's flip of a camera's own RAW format
+    view.orientation = _orientation(tags0.get("Orientation")) or _orientation(tag("Orientation")) \
+        or {3: 3, 5: 8, 6: 6}.get(flip)
     view.make = tag("Make")
     view.model = tag("Model") or tag("UniqueCameraModel")
 
@@ -241,9 +246,29 @@ def _read_ldr_meta(path: Path) -> View:
     width = get(0xA002)
     view.focal_plane_width = int(width) if width and width > 0 else None
     view.flash = _flash(tags.get(0x9209))
+    view.orientation = _orientation(tags.get(0x0112))
     view.make = tags.get(0x010F)
     view.model = tags.get(0x0110)
     return view
+
+
+def _orientation(value) -> int | None:
+    """EXIF Orientation (1-8), None when absent or out of range."""
+    v = tag_number(value)
+    return int(v) if v is not None and float(v).is_integer() and 1 <= v <= 8 else None
+
+
+# EXIF Orientation -> the direction (camera x right, y down) in the stored pixels that is up in the
+# photo as displayed: 1-2 the top row is the top; 3-4 the bottom row is; 5-6 the first column is
+# (a phone held upright, its sensor stored sideways); 7-8 the last column is
+ORIENTATION_UP = {1: (0.0, -1.0, 0.0), 2: (0.0, -1.0, 0.0), 3: (0.0, 1.0, 0.0), 4: (0.0, 1.0, 0.0),
+                  5: (-1.0, 0.0, 0.0), 6: (-1.0, 0.0, 0.0), 7: (1.0, 0.0, 0.0), 8: (1.0, 0.0, 0.0)}
+
+
+def camera_up(orientation: int | None) -> tuple[float, float, float]:
+    """The displayed photo's up direction in camera coordinates (x right, y down in the stored
+    pixels), by its EXIF Orientation (None: the pixels are upright)."""
+    return ORIENTATION_UP.get(orientation or 1, ORIENTATION_UP[1])
 
 
 def read_meta(path: Path) -> View:

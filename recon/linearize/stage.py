@@ -194,6 +194,9 @@ def linearize_capture(
                 "focal_length_35mm": _json_num(view.focal_length_35mm),
                 "focal_length_px": f_px,
                 "focal_length_source": f_src,
+                # the pixels stay as stored (every stage uses them so); the object frame's up
+                # reads the orientation (recon.poses.frame)
+                "orientation": view.orientation,
                 "make": str(view.make) if view.make else None,
                 "model": str(view.model) if view.model else None,
                 **levels,

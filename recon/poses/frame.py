@@ -78,10 +78,18 @@ def _hull_box(cams: CameraSet, masks: dict, center: np.ndarray, half: float, res
 
 
 def object_frame(cams_colmap: CameraSet, points: np.ndarray, in_mask: np.ndarray, masks: dict,
-                 settings: PoseSettings) -> tuple[Similarity, dict]:
-    """Similarity COLMAP -> object frame (centered, inside [-1, 1]^3, z up); see the module doc."""
+                 settings: PoseSettings, orientations: dict[str, int] | None = None) -> tuple[Similarity, dict]:
+    """Similarity COLMAP -> object frame (centered, inside [-1, 1]^3, z up); see the module doc.
+
+    ``orientations``: the EXIF Orientation of views whose stored pixels are turned for display
+    (a phone held upright stores its pixels sideways): their up is a column direction, not -y."""
+    from recon.linearize.metadata import camera_up
+
+    orientations = orientations or {}
     centers = np.stack([c.center for c in cams_colmap])
-    ups = np.stack([-c.world_to_camera[1, :3] for c in cams_colmap])  # -y of each camera
+    # each photo's up as displayed (-y of the camera for upright pixels), in COLMAP's frame
+    ups = np.stack([c.world_to_camera[:3, :3].T @ np.asarray(camera_up(orientations.get(c.stem)))
+                    for c in cams_colmap])
     z = ups.mean(0)
     if np.linalg.norm(z) < 1e-3:
         z = np.array([0.0, 0.0, 1.0])

@@ -123,6 +123,17 @@ def image_names(linear_json: Path | None, stems: list[str]) -> dict[str, str]:
     return out
 
 
+def view_orientations(linear_json: Path | None, stems: list[str]) -> dict[str, int]:
+    """The EXIF Orientation of each stem's photo where linear.json records one other than upright."""
+    entries = _linear_entries(linear_json)
+    out = {}
+    for s in stems:
+        o = entries.get(s, {}).get("orientation")
+        if isinstance(o, int) and 2 <= o <= 8:
+            out[s] = o
+    return out
+
+
 def read_masks(masks_dir: Path | None, stems: list[str]) -> dict[str, np.ndarray]:
     """The masks stage's masks of ``stems`` (stem -> (H, W) bool); views without one are left out."""
     if masks_dir is None:

@@ -19,7 +19,7 @@ from recon.io.cameras import Camera, CameraError, CameraSet, load_cameras, save_
 from recon.io.images import read_exr
 from recon.poses.features import extract_and_match, sift_upsample_factor, write_sift_images
 from recon.poses.frame import object_frame, points_in_masks, rotate_cameras
-from recon.poses.inputs import image_names, linear_stems, prior_focal, prior_sigma, read_masks
+from recon.poses.inputs import image_names, linear_stems, prior_focal, prior_sigma, read_masks, view_orientations
 from recon.poses.mapping import map_views, refine, rescale_model, silhouette_consistency, unregistered_reasons
 from recon.poses.settings import PoseError, PoseSettings
 from recon.poses.undistort import keypoints_to_pinhole, pinhole_camera, undistort_maps, undistort_view
@@ -302,6 +302,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     maps = undistort_maps(colmap_cam, pinhole)
     K = pinhole.calibration_matrix()
     names = image_names(linear_json, stems)
+    orientations = view_orientations(linear_json, stems)
     frames = []
     und_masks = {}
     by_stem = {Path(rec.images[i].name).stem: rec.images[i] for i in rec.reg_image_ids()}
@@ -320,9 +321,9 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
     xyz, in_mask = points_in_masks(rec, masks)
 
     def place(view_masks: dict) -> tuple[Similarity, CameraSet, dict]:
-        sim, frame_info = object_frame(cams_colmap, xyz, in_mask, view_masks, settings)
+        sim, frame_info = object_frame(cams_colmap, xyz, in_mask, view_masks, settings, orientations)
         cams = rotate_cameras(cams_colmap, sim)
-        cams = CameraSet(cams.frames, light_intensity, {"colmap_to_object": sim.matrix.tolist()},
+        cams = CameraSet(cams.frames, light_intensity, {"colmap_to_object": sim.matrix.tolist(), **FRAME_UP},
                          light_known=light_known)
         save_cameras(tmp / "cameras.json", cams)
         _write_points(tmp / "points.ply", sim.apply(xyz) if len(xyz) else xyz, in_mask)
@@ -350,7 +351,7 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
             sim = Similarity(refit.scale * sim.scale, refit.rotation @ sim.rotation,
                              refit.scale * refit.rotation @ sim.translation + refit.translation)
             cams = load_cameras(tmp / "cameras.json")
-            cams = CameraSet(cams.frames, cams.light_intensity, {"colmap_to_object": sim.matrix.tolist()},
+            cams = CameraSet(cams.frames, cams.light_intensity, {"colmap_to_object": sim.matrix.tolist(), **FRAME_UP},
                              light_known=cams.light_known)
             save_cameras(tmp / "cameras.json", cams)
             frame["colmap_to_object"] = sim.to_dict()
@@ -526,6 +527,11 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
     shutil.rmtree(tmp / "tabletop")
     log.info("support plane found in the SfM points: tabletop masks in undistorted/masks, plane.json written")
     return {k: v for k, v in summary["plane"].items() if not isinstance(v, (list, dict)) or k == "camera_elevation_deg"}
+
+
+# cameras.json of SfM: the object frame's z is up (the photos' up as displayed, or the table's
+# normal), which the export stands on +Y whatever way each photo's pixels are stored
+FRAME_UP = {"up": [0.0, 0.0, 1.0]}
 
 
 def _consistent_falloff_masks(cams: CameraSet, und_masks: Path, given: set[str]) -> dict:

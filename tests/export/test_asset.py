@@ -176,6 +176,25 @@ def test_up_rotation_keeps_identity_when_views_disagree():
     assert np.array_equal(object_to_world(ExportSettings(up="identity")), np.eye(4))
 
 
+def test_the_poses_stage_up_wins_over_the_cameras(tmp_path):
+    """SfM's cameras.json says its frame's up (the poses stage read each photo's EXIF
+    Orientation): cameras whose pixels are stored sideways disagree on -y, but the asset still
+    stands on the frame's z."""
+    from recon.io.cameras import CameraSet, save_cameras
+
+    frames = []
+    for k in range(8):
+        W = look_at([3 * np.cos(k), 3 * np.sin(k), 1.0], np.zeros(3), [0, 0, 1]).copy()
+        W[:2] = np.stack([W[1], -W[0]])  # portrait: the displayed up is the stored -x
+        frames.append(Camera(f"images/{k}.jpg", 8, 8, np.eye(3), W))
+    save_cameras(tmp_path / "plain.json", CameraSet(tuple(frames)))
+    save_cameras(tmp_path / "sfm.json", CameraSet(tuple(frames), 1.0, {"up": [0.0, 0.0, 1.0]}))
+    R = object_to_world(ExportSettings(), tmp_path / "sfm.json")[:3, :3]
+    assert np.allclose(R @ [0, 0, 1], [0, 1, 0], atol=1e-9)
+    R = object_to_world(ExportSettings(), tmp_path / "plain.json")[:3, :3]
+    assert not np.allclose(R @ [0, 0, 1], [0, 1, 0], atol=0.1)
+
+
 def test_settings_from_config_and_bad_values():
     s = build_settings(ExportSettings, {"up": "identity", "meters_per_unit": 2})
     assert s == ExportSettings(up="identity", meters_per_unit=2.0)
