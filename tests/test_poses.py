@@ -215,6 +215,28 @@ def test_undistortion_matches_the_pinhole_image():
     assert pinhole.model_name == "PINHOLE" and pinhole.focal_length_x == pinhole.focal_length_y
 
 
+def test_distort_maps_take_an_undistorted_mask_back_to_the_photo():
+    """The poses stage checks its consistent masks against SfM's points in the photos' own
+    pixels: an undistorted mask taken back (:func:`distort_maps`) matches the mask drawn in the
+    distorted photo, but for a pixel along the outline."""
+    import pycolmap
+
+    from recon.poses.undistort import distort_maps
+
+    cam = pycolmap.Camera.create_from_model_name(1, "SIMPLE_RADIAL", 100.0, 64, 48)
+    cam.params = [100.0, 32.0, 24.0, 0.15]
+    pinhole = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), cam)
+    j, i = np.meshgrid(np.arange(64) + 0.5, np.arange(48) + 0.5)
+    xy = cam.cam_from_img(np.stack([j.ravel(), i.ravel()], 1)).reshape(48, 64, 2)
+    disc = (xy[..., 0] - 0.05) ** 2 + (xy[..., 1] + 0.03) ** 2 < 0.02  # a disc inside the frame, as photographed
+    und = remap(disc.astype(np.float32), undistort_maps(cam, pinhole)) >= 0.5
+    back = remap(und.astype(np.float32), distort_maps(cam, pinhole)) >= 0.5
+    assert back.shape == disc.shape and np.count_nonzero(back != disc) < 0.05 * disc.sum()
+    from scipy import ndimage
+    edge = ndimage.binary_dilation(disc) & ~ndimage.binary_erosion(disc)
+    assert not (back != disc)[~edge].any()
+
+
 def test_no_distortion_keeps_the_photo_size():
     """A distortion that moves no pixel by more than 0.01 px keeps the photo's size and camera
     (pycolmap.undistort_camera cropped 192 x 144 to 191 x 143 with k = 0 and to 190 x 142 with

@@ -22,7 +22,8 @@ from recon.poses.frame import object_frame, points_in_masks, rotate_cameras
 from recon.poses.inputs import image_names, linear_stems, prior_focal, prior_sigma, read_masks, view_orientations
 from recon.poses.mapping import map_views, refine, rescale_model, silhouette_consistency, unregistered_reasons
 from recon.poses.settings import PoseError, PoseSettings
-from recon.poses.undistort import keypoints_to_pinhole, pinhole_camera, undistort_maps, undistort_view
+from recon.poses.undistort import (distort_maps, keypoints_to_pinhole, pinhole_camera, remap, undistort_maps,
+                                   undistort_view)
 from recon.segment import read_points_ply, run_tabletop_masks, triangulate_points
 from recon.metrics import Similarity
 from recon.support import SupportPlane, fit_support_plane, load_plane, save_plane
@@ -361,7 +362,15 @@ def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | 
 
     mre = float(rec.compute_mean_reprojection_error())
     above = _points_on_the_object(rec, sim, tmp / "plane.json") if support.get("found") else None
-    sil = silhouette_consistency(rec, masks, keep=above)
+    checked = masks
+    if support.get("consistent", {}).get("applied"):
+        # the masks the later stages read: the consistent ones, taken back to the photos' pixels
+        from recon.io.images import read_mask
+
+        back = distort_maps(colmap_cam, pinhole)
+        checked = {**masks, **{s: remap(read_mask(tmp / "undistorted" / "masks" / f"{s}.png").astype(np.float32),
+                                        back) >= 0.5 for s in support["consistent"].get("views", {})}}
+    sil = silhouette_consistency(rec, checked, keep=above)
     if sil is not None and sil < settings.mapping.min_silhouette_consistency:
         log.warning("only %.0f%% of the object's sparse points (those seen inside the masks%s) project inside "
                     "the other views' masks (a right model: > %.0f%%): the cameras and the masks disagree; either "

@@ -78,6 +78,17 @@ def undistort_maps(cam, pinhole):
     return src[:, :, 0].astype(np.float32), src[:, :, 1].astype(np.float32)
 
 
+def distort_maps(cam, pinhole):
+    """cv2.remap maps (float32 (H, W)) from the distorted image to the pinhole one: the inverse of
+    :func:`undistort_maps`, to take an undistorted mask back to the photo's own pixels."""
+    h, w = cam.height, cam.width
+    j, i = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    xy = cam.cam_from_img(np.stack([j.ravel(), i.ravel()], axis=1))
+    dst = pinhole.img_from_cam(np.concatenate([xy, np.ones((len(xy), 1))], axis=1), check_cheirality=False)
+    dst = dst.reshape(h, w, 2) - 0.5
+    return dst[:, :, 0].astype(np.float32), dst[:, :, 1].astype(np.float32)
+
+
 def remap(img: np.ndarray, maps) -> np.ndarray:
     import cv2
 
