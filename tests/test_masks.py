@@ -308,6 +308,42 @@ def test_consistent_masks_outvote_the_views_that_took_something_else(ring_views)
     assert not info["applied"]
 
 
+def test_masks_from_the_sparse_points_where_no_views_agree(tmp_path):
+    """A near-black object before a lit wall: every view's flash-falloff mask holds a different
+    piece of the background, so neither the vote of all views nor of any subset stands. The
+    poses stage then draws the masks from SfM's points on the object (the wall's points, beyond
+    the object's reach from the point the cameras aim at, are left out) and makes them
+    consistent: every view near its true silhouette."""
+    from _geometry_scene import ring_of_views
+
+    from recon.io.cameras import save_cameras
+    from recon.poses.stage import _consistent_falloff_masks, _write_points
+
+    torus, cams, truth = ring_of_views()
+    rng = np.random.default_rng(0)
+    tri = torus.v_pos[torus.t_pos_idx]
+    pick = rng.integers(len(tri), size=1500)
+    w = rng.dirichlet(np.ones(3), size=len(pick))
+    on_object = np.einsum("nk,nkd->nd", w, tri[pick])
+    wall = np.c_[rng.uniform(-3, 3, 300), np.full(300, -3.5), rng.uniform(-1, 3, 300)]  # far behind, lit
+    folder = tmp_path / "poses"
+    (folder / "undistorted" / "masks").mkdir(parents=True)
+    save_cameras(folder / "cameras.json", cams)
+    _write_points(folder / "points.ply", np.r_[on_object, wall], np.ones(1800, bool))
+    for k, (cam, t) in enumerate(zip(cams, truth, strict=True)):
+        h, wd = t.shape
+        yy, xx = np.mgrid[:h, :wd]
+        cy, cx = (0.15 + 0.7 * ((k * 7) % 16) / 16) * h, (0.1 + 0.8 * ((k * 5) % 16) / 16) * wd
+        write_mask(folder / "undistorted" / "masks" / f"{cam.stem}.png", (yy - cy) ** 2 + (xx - cx) ** 2 < 15 ** 2)
+    # without the points the vote is refused and the masks stay as they are
+    info = _consistent_falloff_masks(cams, folder / "undistorted" / "masks", set())
+    assert not info["applied"]
+    info = _consistent_falloff_masks(cams, folder / "undistorted" / "masks", set(), folder / "points.ply")
+    assert info["applied"] and info["source"] == "sparse points"
+    ious = [_iou(read_mask(folder / "undistorted" / "masks" / f"{c.stem}.png"), t) for c, t in zip(cams, truth)]
+    assert np.mean(ious) > 0.85 and min(ious) > 0.75, np.round(ious, 3)
+
+
 def test_consistent_masks_need_views(ring_views):
     from recon.io.cameras import CameraSet
     from recon.masks.consistent import consistent_masks

@@ -59,3 +59,51 @@ def triangulate_points(images: list[np.ndarray], cams: CameraSet, pairs_per_view
         ok &= cosang < np.cos(np.radians(min_angle_deg))
         out.append(X[ok])
     return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def sparse_point_masks(points: np.ndarray, cams: CameraSet, reach: float = 0.35, min_points: int = 30
+                       ) -> dict[str, np.ndarray]:
+    """Masks drawn from the object's sparse points, for a capture whose flash-falloff masks fail
+    (a near-black object the flash lifts no more than the lit wall or base behind it).
+
+    The points within ``reach`` of the scene scale (the median camera distance) of the point the
+    cameras aim at are taken as the object's. Every point of an object projects inside its
+    silhouette in every view, seen or hidden, so in each view the points are splatted at the
+    spacing of their projections (the median distance to the third nearest), closed by as much,
+    and the largest piece kept; holes stay (an opening the views see through, or a patch
+    without points), for the vote across the views to tell apart. The outline is as good as the points reach:
+    the object's texture decides (SfM found the points on it). Returns the masks by stem of the
+    views where at least ``min_points`` points fall in the frame; the others are left out.
+    """
+    import cv2
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    from recon.support import aim_point, scene_scale
+
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if len(pts) < min_points:
+        return {}
+    target = aim_point(cams)
+    pts = pts[np.linalg.norm(pts - target, axis=1) < reach * scene_scale(cams, target)]
+    out = {}
+    for cam in cams:
+        xy, z = cam.project(pts)
+        ok = (z > 0) & np.all(np.isfinite(xy), axis=1)
+        ok[ok] = (xy[ok, 0] >= 0) & (xy[ok, 0] < cam.width) & (xy[ok, 1] >= 0) & (xy[ok, 1] < cam.height)
+        q = xy[ok]
+        if len(q) < min_points:
+            continue
+        spacing, _ = cKDTree(q).query(q, k=4)
+        radius = int(np.clip(np.ceil(np.median(spacing[:, 3])), 2, 0.05 * max(cam.width, cam.height)))
+        m = np.zeros((cam.height, cam.width), np.uint8)
+        for x, y in np.floor(q).astype(int):
+            cv2.circle(m, (int(x), int(y)), radius, 1, -1)
+        m = ndimage.binary_closing(m.astype(bool), iterations=radius)
+        labels, n = ndimage.label(m)
+        if n > 1:
+            sizes = ndimage.sum_labels(m, labels, index=np.arange(1, n + 1))
+            m = labels == 1 + int(np.argmax(sizes))
+        out[cam.stem] = m
+    return out

@@ -495,7 +495,7 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
         log.info("no support plane in the SfM points (%s): the masks stage's masks are kept, made consistent "
                  "across the views", info["reason"])
         return {**{k: v for k, v in info.items() if k in ("found", "reason")},
-                "consistent": _consistent_falloff_masks(cams, und_masks, given or set())}
+                "consistent": _consistent_falloff_masks(cams, und_masks, given or set(), tmp / "points.ply")}
     from recon.masks.tabletop import SegmentError
 
     try:
@@ -509,7 +509,7 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
         log.warning("a plane was found in the SfM points, but the tabletop masks failed, so the masks stage's "
                     "masks are kept (no support plane), made consistent across the views. %s", e)
         return {"found": False, "reason": f"tabletop masks failed: {str(e).splitlines()[0]}",
-                "consistent": _consistent_falloff_masks(cams, und_masks, given or set())}
+                "consistent": _consistent_falloff_masks(cams, und_masks, given or set(), tmp / "points.ply")}
     if not (tmp / "tabletop" / "plane.json").is_file():  # the same points, the same plane: not expected
         shutil.rmtree(tmp / "tabletop")
         return {"found": False, "reason": summary["plane"].get("reason")}
@@ -527,7 +527,7 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
                         "and are not used, the masks stage's masks are kept (no support plane), made consistent "
                         "across the views. Give masks/<stem>.png in the capture if these fail too", 100 * share)
             return {"found": False, "reason": f"the tabletop masks hold {100 * share:.0f}% of the table's points",
-                    "consistent": _consistent_falloff_masks(cams, und_masks, given or set())}
+                    "consistent": _consistent_falloff_masks(cams, und_masks, given or set(), tmp / "points.ply")}
     und_masks.mkdir(parents=True, exist_ok=True)
     for c in cams:
         os.replace(tmp / "tabletop" / f"{c.stem}.png", und_masks / f"{c.stem}.png")
@@ -543,7 +543,8 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
 FRAME_UP = {"up": [0.0, 0.0, 1.0]}
 
 
-def _consistent_falloff_masks(cams: CameraSet, und_masks: Path, given: set[str]) -> dict:
+def _consistent_falloff_masks(cams: CameraSet, und_masks: Path, given: set[str], points_ply: Path | None = None
+                              ) -> dict:
     """No support plane: the masks stage's flash-falloff masks in ``und_masks`` (one per view of
     ``cams``) made consistent across the views with SfM's cameras
     (:func:`recon.masks.consistent.consistent_masks`: holes and notches the other views cover are
@@ -559,7 +560,25 @@ def _consistent_falloff_masks(cams: CameraSet, und_masks: Path, given: set[str])
         return {"applied": False, "reason": "not every registered view has a mask"}
     if all(c.stem in given for c in cams):
         return {"applied": False, "reason": "every view's mask is given"}
-    after, info = consistent_derived({s: read_mask(p) for s, p in paths.items()}, cams, given)
+    current = {s: read_mask(p) for s, p in paths.items()}
+    after, info = consistent_derived(current, cams, given)
+    source = "flash falloff"
+    if not info.get("applied") and points_ply is not None and points_ply.is_file():
+        # no subset of the views agrees on one object (a near-black object before a lit wall or
+        # base): masks drawn from SfM's points on the object, made consistent the same way
+        from recon.masks.points import sparse_point_masks
+
+        drawn = sparse_point_masks(read_points_ply(points_ply), cams)
+        if sum(s not in given for s in drawn) >= 0.75 * sum(c.stem not in given for c in cams):
+            after2, info2 = consistent_derived({**current, **{s: m for s, m in drawn.items() if s not in given}},
+                                               cams, given)
+            if info2.get("applied"):
+                log.warning("the flash-falloff masks do not agree on one object (%s): the masks are drawn from "
+                            "SfM's points on the object instead (%d of %d views), made consistent across the views. "
+                            "Their outline is only as good as the object's texture: give masks/<stem>.png in the "
+                            "capture for a better asset", info.get("reason"), len(drawn), len(cams))
+                after, info, source = after2, {**info2, "views": {s: v for s, v in info2["views"].items()
+                                                                  if s not in given}}, "sparse points"
     if not info.get("applied"):
         log.info("flash-falloff masks kept view by view: %s", info.get("reason"))
         return {"applied": False, **{k: info[k] for k in ("reason", "median_kept") if k in info}}
@@ -568,12 +587,12 @@ def _consistent_falloff_masks(cams: CameraSet, und_masks: Path, given: set[str])
         write_mask(paths[stem], after[stem])
     added = float(np.mean([v["added"] for v in changed.values()]))
     removed = float(np.mean([v["removed"] for v in changed.values()]))
-    log.info("flash-falloff masks made consistent across the %d registered views (hull voxel %.3g): %.1f%% of "
-             "each image added, %.1f%% removed on average", len(cams), info["step"], 100 * added, 100 * removed)
+    log.info("masks (%s) made consistent across the %d registered views (hull voxel %.3g): %.1f%% of each image "
+             "added, %.1f%% removed on average", source, len(cams), info["step"], 100 * added, 100 * removed)
     # views whose masks took something else (the floor, a stand's base) and that took the hull of
     # the agreeing views instead (recon.masks.consistent.agreeing_views)
-    return {"applied": True, "step": info["step"], "added": added, "removed": removed, "views": changed,
-            "outliers": info.get("outliers", [])}
+    return {"applied": True, "source": source, "step": info["step"], "added": added, "removed": removed,
+            "views": changed, "outliers": info.get("outliers", [])}
 
 
 def _object_frame_on_plane(tmp: Path, margin: float) -> Similarity | None:
