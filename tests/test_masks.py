@@ -340,7 +340,7 @@ def test_masks_from_the_sparse_points_where_no_views_agree(tmp_path):
     assert not info["applied"]
     info = _consistent_falloff_masks(cams, folder / "undistorted" / "masks", set(), folder / "points.ply")
     assert info["applied"] and info["source"] == "sparse points"
-    ious = [_iou(read_mask(folder / "undistorted" / "masks" / f"{c.stem}.png"), t) for c, t in zip(cams, truth)]
+    ious = [_iou(read_mask(folder / "undistorted" / "masks" / f"{c.stem}.png"), t) for c, t in zip(cams, truth, strict=True)]
     assert np.mean(ious) > 0.85 and min(ious) > 0.75, np.round(ious, 3)
 
 
