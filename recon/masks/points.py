@@ -61,7 +61,7 @@ def triangulate_points(images: list[np.ndarray], cams: CameraSet, pairs_per_view
     return np.concatenate(out) if out else np.zeros((0, 3))
 
 
-def sparse_point_masks(points: np.ndarray, cams: CameraSet, reach: float = 0.35, min_points: int = 30
+def sparse_point_masks(points: np.ndarray, cams: CameraSet, reach: float = 0.35, min_points: int = 100
                        ) -> dict[str, np.ndarray]:
     """Masks drawn from the object's sparse points, for a capture whose flash-falloff masks fail
     (a near-black object the flash lifts no more than the lit wall or base behind it).
