@@ -266,20 +266,25 @@ def test_no_distortion_keeps_the_photo_size():
     assert (pin.width, pin.height) == (192, 144) and pin.principal_point_x == 95.0
 
 
+def _ring_about(c0: np.ndarray, u: np.ndarray, n: int, distance: float, lift: float):
+    """Two unit axes ``a``, ``b`` across the up direction ``u``, and the world-to-camera
+    matrices of ``n`` upright views on a ring ``distance`` from ``c0``, ``lift`` above it."""
+    a = np.cross(u, [1.0, 0.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(u, a)
+    views = [look_at(c0 + distance * (np.cos(t) * a + np.sin(t) * b) + lift * u, c0, up=u)
+             for t in 2 * np.pi * np.arange(n) / n]
+    return a, b, views
+
+
 def test_object_frame_centers_scales_and_levels():
     rng = np.random.default_rng(0)
     # a "COLMAP frame": object at c0, world up along u (not z), arbitrary scale
     c0 = np.array([5.0, -2.0, 3.0])
     u = np.array([0.3, -0.9, 0.3])
     u /= np.linalg.norm(u)
-    a = np.cross(u, [1.0, 0.0, 0.0])
-    a /= np.linalg.norm(a)
-    b = np.cross(u, a)
-    frames = []
-    for k in range(16):
-        ang = 2 * np.pi * k / 16
-        eye = c0 + 7.0 * (np.cos(ang) * a + np.sin(ang) * b) + 2.0 * u
-        frames.append(Camera(f"images/{k:02d}.png", 64, 64, intrinsics(64, 64, 40), look_at(eye, c0, up=u)))
+    a, b, views = _ring_about(c0, u, 16, 7.0, 2.0)
+    frames = [Camera(f"images/{k:02d}.png", 64, 64, intrinsics(64, 64, 40), W) for k, W in enumerate(views)]
     cams = CameraSet(tuple(frames))
     # points on an ellipsoid, longest along a (2.0), then b (1.2), then u (0.8)
     d = rng.normal(size=(4000, 3))
@@ -308,13 +313,9 @@ def test_object_frame_up_from_photos_stored_sideways():
     c0 = np.array([1.0, 2.0, -1.0])
     u = np.array([0.7, 0.6, 0.2])
     u /= np.linalg.norm(u)
-    a = np.cross(u, [1.0, 0.0, 0.0])
-    a /= np.linalg.norm(a)
-    b = np.cross(u, a)
     frames = []
-    for k in range(12):
-        ang = 2 * np.pi * k / 12
-        W = look_at(c0 + 6.0 * (np.cos(ang) * a + np.sin(ang) * b) + 0.5 * u, c0, up=u).copy()
+    for k, W in enumerate(_ring_about(c0, u, 12, 6.0, 0.5)[2]):
+        W = W.copy()
         W[:2] = np.stack([W[1], -W[0]])  # rolled a quarter turn: the displayed up is the stored -x
         frames.append(Camera(f"images/{k:02d}.jpg", 48, 64, intrinsics(48, 64, 40), W))
     cams = CameraSet(tuple(frames))
