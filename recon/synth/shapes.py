@@ -21,7 +21,7 @@ and inside the cube [-0.95, 0.95]^3 (so inside DESIGN's [-1, 1]^3 object frame):
 (tabletop captures, :mod:`recon.synth.tabletop`).
 
 Shapes are functions of ``seed`` alone (numpy float64, no threads; the mug also goes through
-open3d's marching cubes, whose output is put in one order first, and pymeshlab's remeshing).
+open3d's marching cubes and pymeshlab's remeshing, both deterministic).
 """
 
 from __future__ import annotations
@@ -209,22 +209,6 @@ def mug_sdf(points: np.ndarray, seed: int = 0) -> np.ndarray:
     return np.maximum(_smooth_min(body, handle, 0.06), -cavity)
 
 
-def _canonical(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The same mesh in one order whatever order it came in: vertices sorted by position, each
-    face starting at its lowest index (its orientation kept), faces sorted. open3d's marching
-    cubes runs in parallel and may emit its vertices and triangles in another order from run
-    to run on a busy machine, and the remeshing that follows depends on that order (a tabletop
-    mug of 767 vertices beside its twin of 784 in one test run)."""
-    order = np.lexsort((v[:, 2], v[:, 1], v[:, 0]))
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    v, f = v[order], rank[f]
-    k = np.argmin(f, axis=1)
-    rows = np.arange(len(f))
-    f = np.stack([f[rows, (k + j) % 3] for j in range(3)], axis=1)
-    return v, f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
-
-
 def mug(level: int = 6, seed: int = 0) -> Mesh:
     """The ``mug``: marching cubes of :func:`mug_sdf`, remeshed to about ``20 * 4**level`` faces."""
     import open3d as o3d
@@ -239,7 +223,6 @@ def mug(level: int = 6, seed: int = 0) -> Mesh:
     iso = o3d.t.geometry.TriangleMesh.create_isosurfaces(o3d.core.Tensor(inside), [0.0])
     v = iso.vertex.positions.numpy().astype(np.float64)[:, ::-1] * step - half  # (k, j, i) -> xyz
     f = iso.triangle.indices.numpy().astype(np.int64)
-    v, f = _canonical(v, f)
     target = 20 * 4**level
     edge = float(np.sqrt(4.0 * Mesh(v, f).area() / (np.sqrt(3.0) * target)))
     ms = pymeshlab.MeshSet()
