@@ -21,7 +21,7 @@ and inside the cube [-0.95, 0.95]^3 (so inside DESIGN's [-1, 1]^3 object frame):
 (tabletop captures, :mod:`recon.synth.tabletop`).
 
 Shapes are functions of ``seed`` alone (numpy float64, no threads; the mug also goes through
-open3d's marching cubes and pymeshlab's remeshing, both deterministic).
+open3d's marching cubes, run on one thread, and pymeshlab's remeshing).
 """
 
 from __future__ import annotations
@@ -220,7 +220,15 @@ def mug(level: int = 6, seed: int = 0) -> Mesh:
     step = g[1] - g[0]
     grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1)
     inside = -mug_sdf(grid, seed).astype(np.float32)  # positive inside
-    iso = o3d.t.geometry.TriangleMesh.create_isosurfaces(o3d.core.Tensor(inside), [0.0])
+    # open3d's marching cubes on one thread: on a busy machine its threads emit the triangles in
+    # another order, and the remeshing below depends on that order (a mug of 767 vertices beside
+    # its 784-vertex twin in one suite run); one thread gives the order of an idle machine's run
+    threads = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        iso = o3d.t.geometry.TriangleMesh.create_isosurfaces(o3d.core.Tensor(inside), [0.0])
+    finally:
+        o3d.utility.set_max_threads(threads)
     v = iso.vertex.positions.numpy().astype(np.float64)[:, ::-1] * step - half  # (k, j, i) -> xyz
     f = iso.triangle.indices.numpy().astype(np.int64)
     target = 20 * 4**level
