@@ -152,8 +152,9 @@ def consistent_masks(masks: list[np.ndarray], cams: CameraSet, settings: Consist
     if info.get("applied"):
         return out, info
     voters = agreeing_views(values, wcams, settings, trusted) if settings.agreement > 0 else None
-    out2, info2 = (out, info) if voters is None or len(voters) == n else _vote(masks, cams, wcams, values, voters,
-                                                                                 settings)
+    out2, info2 = out, info
+    if voters is not None and len(voters) < n:
+        out2, info2 = _vote(masks, cams, wcams, values, voters, settings)
     if not info2.get("applied"):
         if "median_kept" in info:
             log.warning("flash-falloff masks not made consistent: %s. The object is probably darker than what lies "
@@ -181,10 +182,7 @@ def agreeing_views(values: list[np.ndarray], wcams: CameraSet, settings: Consist
     object away; a bare majority keeps it, and the views that took something else stand out
     by their small overlap with its silhouette.
     """
-    target = aim_point(wcams)
-    half = 0.6 * scene_scale(wcams, target)
-    up = _up(wcams)
-    ground = SupportPlane.through(target - half * up, up)
+    target, half, ground = _first_box(wcams)
     hull = carve(values, wcams, ground, target, half, 2 * half, 48, settings.consensus_tolerance, seed_point=target)
     if hull is None:
         return None
@@ -199,20 +197,26 @@ def agreeing_views(values: list[np.ndarray], wcams: CameraSet, settings: Consist
     return voters
 
 
+def _first_box(cams: CameraSet) -> tuple[np.ndarray, float, SupportPlane]:
+    """The coarse hull's box: the point the cameras aim at, a half size of 0.6 of the scene scale,
+    and the floor that far below it across the cameras' mean up."""
+    target = aim_point(cams)
+    half = 0.6 * scene_scale(cams, target)
+    up = _up(cams)
+    return target, half, SupportPlane.through(target - half * up, up)
+
+
 def _vote(masks, cams, wcams, values, voters: list[int], settings: ConsistentSettings) -> tuple[list[np.ndarray], dict]:
     """:func:`consistent_masks`' vote among the views ``voters``; the other views take the hull's
     silhouette (shrunk by a voxel's footprint)."""
-    target = aim_point(cams)
-    scale = scene_scale(cams, target)
-    up = _up(cams)
-    half = 0.6 * scale
+    target, half, ground = _first_box(cams)
+    up = _up(cams)  # as the floor's (unnormalised again: the same bits as before)
 
     def floor_under(center, h):
         return SupportPlane.through(np.asarray(center) - h * up, up)
 
     vcams = CameraSet(tuple(wcams.frames[i] for i in voters), wcams.light_intensity)
     vvalues = [values[i] for i in voters]
-    ground = floor_under(target, half)
     coarse = carve(vvalues, vcams, ground, target, half, 2 * half, 48, settings.tolerance, seed_point=target)
     if coarse is None:
         return [m.copy() for m in masks], {"applied": False, "reason": "the views' masks share no 3D region"}
