@@ -185,6 +185,10 @@ class PlaneSettings:
     # of the object points' (measured: tables 2.2-4.8 on seven tabletop captures, planes through
     # an object in the void 0.35 and 0.76; bench/tabletop_e2e.py --family, docs/tabletop.md).
     min_spread: float = 1.0
+    # The second look (planes across the cameras' up, when the plane with the most points fails):
+    min_inlier_fraction_up: float = 0.02  # a table with few of the points ...
+    max_below: float = 0.1  # ... under nearly all of them ...
+    min_spread_up: float = 1.5  # ... and spread well around the object's foot
     iterations: int = 2000
     seed: int = 0
 
@@ -193,6 +197,8 @@ class PlaneSettings:
             raise ValueError(f"min_spread must be >= 0, got {self.min_spread}")
         if not 0 < self.inlier_distance < 1:
             raise ValueError(f"inlier_distance must be in (0, 1), got {self.inlier_distance}")
+        if not 0 < self.min_inlier_fraction_up <= 1 or not 0 <= self.max_below <= 1 or self.min_spread_up < 0:
+            raise ValueError("min_inlier_fraction_up must be in (0, 1], max_below in [0, 1], min_spread_up >= 0")
         if not 0 < self.min_inlier_fraction <= 1 or not 0 < self.camera_fraction <= 1:
             raise ValueError("min_inlier_fraction and camera_fraction must be in (0, 1]")
         if self.min_inliers < 3 or self.iterations < 1:
@@ -235,6 +241,40 @@ def _refine(points: np.ndarray) -> tuple[np.ndarray, float]:
     return n, -float(n @ c)
 
 
+def _up_candidates(cams: CameraSet, centers: np.ndarray, target: np.ndarray) -> list[np.ndarray]:
+    """Directions the table's normal likely has, from the cameras alone: the mean of their image
+    ups (-y; a photo's up is the room's unless the phone was turned, then the mean shrinks and
+    is not used) and the normal of the plane through their centres (a person walks around the
+    object at about one height), each turned towards the cameras."""
+    out = []
+    ups = -np.stack([c.camera_to_world[:3, 1] for c in cams])
+    m = ups.mean(0)
+    if np.linalg.norm(m) > 0.5:
+        out.append(m / np.linalg.norm(m))
+    if len(centers) >= 3:
+        _, sv, vt = np.linalg.svd(centers - centers.mean(0), full_matrices=False)
+        if sv[1] > 1e-9 and sv[2] < 0.5 * sv[1]:  # the centres span a plane, not a line or a ball
+            n = vt[-1] if (centers - target).mean(0) @ vt[-1] > 0 else -vt[-1]
+            out.append(n)
+    return out
+
+
+def _height_levels(pts: np.ndarray, up: np.ndarray, below: float, tol: float, min_count: int) -> list[float]:
+    """Heights along ``up`` (below ``below``) where at least ``min_count`` points lie within ``tol``:
+    the local maxima of the points' height density, most populated first."""
+    h = pts @ up
+    h = h[h < below]
+    if len(h) < min_count:
+        return []
+    edges = np.arange(h.min() - tol, h.max() + 2 * tol, tol)
+    counts, _ = np.histogram(h, edges)
+    window = np.convolve(counts, np.ones(2, int), mode="valid")  # two bins: a band of 2 tol
+    peaks = [k for k in range(len(window)) if window[k] >= min_count
+             and window[k] >= window[max(k - 1, 0)] and window[k] >= window[min(k + 1, len(window) - 1)]]
+    peaks.sort(key=lambda k: -window[k])
+    return [float(edges[k + 1]) for k in peaks[:8]]
+
+
 def fit_support_plane(points: np.ndarray, cams: CameraSet,
                       settings: PlaneSettings = PlaneSettings()) -> tuple[SupportPlane | None, dict]:
     """The support plane in ``points (N, 3)`` seen by ``cams``, or None with the reason.
@@ -244,6 +284,14 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
     (SfM on small photos of a textured object finds most points on the object), the cameras aim
     above it, and points stand on it near the aim point.
 
+    The plane with the most points (RANSAC over triples) is tried first. When it fails, planes
+    across the cameras' up (:func:`_up_candidates`) at the heights where points gather are tried:
+    a table that holds few of the points (a close-up capture of a strongly textured object: 4 %
+    of SfM's points on the table) is rarely drawn by RANSAC's triples, and the plane with the
+    most points is then a flat cap of the object. Such a plane must hold ``min_inlier_fraction_up``
+    of the points, with at most ``max_below`` of them below it (a table is under everything the
+    photos show of the object) and its points spread ``min_spread_up`` around the object's foot.
+
     Returns
     -------
     plane : SupportPlane or None
@@ -252,7 +300,7 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
         ``found`` (bool), ``reason`` (why not, or what was found), ``inliers``, ``points``,
         ``object_points`` (standing above it near the aim point), ``scale`` (the scene scale),
         ``camera_elevation_deg`` (min/median/max of the cameras' elevation above the plane, seen
-        from the aim point).
+        from the aim point), ``proposal`` (``ransac`` or ``cameras' up``).
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
@@ -289,10 +337,43 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
     if best is None:
         info["reason"] = ("no plane with the cameras on one side, looking down on it by "
                           f">= {settings.min_camera_elevation} degrees (a void capture, or views from below)")
-        return None, info
-    n, d = best
+    else:
+        plane, judged = _judge(best, pts, centers, target, scale, tol, settings)
+        info.update(judged)
+        if plane is not None:
+            info["proposal"] = "ransac"
+            return plane, info
+    # a second look: planes across the cameras' up, at the heights where points gather
+    found = []
+    for up in _up_candidates(cams, centers, target):
+        for level in _height_levels(pts, up, float(target @ up), tol, settings.min_inliers):
+            plane, judged = _judge((up, -level), pts, centers, target, scale, tol, settings, second=True)
+            if plane is not None:
+                found.append((judged["inliers"], plane, judged))
+    if found:
+        first = info["reason"]
+        _, plane, judged = max(found, key=lambda f: f[0])
+        info.update(judged)
+        info["proposal"] = "cameras' up"
+        info["reason"] += f" (across the cameras' up; the plane with the most points failed: {first})"
+        return plane, info
+    return None, info
+
+
+def _judge(candidate: tuple[np.ndarray, float], pts: np.ndarray, centers: np.ndarray, target: np.ndarray,
+           scale: float, tol: float, settings: PlaneSettings, second: bool = False) -> tuple[SupportPlane | None, dict]:
+    """The candidate plane ``(n, d)`` refined on its points and checked (:func:`fit_support_plane`);
+    ``second``: a candidate of the second look, held to its rules. Returns the plane or None, and
+    the diagnostics with ``reason``."""
+    n, d = candidate
     inl = np.abs(pts @ n + d) < tol
-    n, d = _refine(pts[inl])
+    if inl.sum() < 3:
+        return None, {"reason": "no points on the plane"}
+    for _ in range(2 if second else 1):  # a level of the second look: its points again about the fit
+        n, d = _refine(pts[inl])
+        inl = np.abs(pts @ n + d) < tol
+        if inl.sum() < 3:
+            return None, {"reason": "no points on the plane"}
     if (centers @ n + d).mean() < 0:
         n, d = -n, -d
     plane = SupportPlane(n, d)
@@ -304,16 +385,27 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
     foot = plane.project(target)
     horiz = np.linalg.norm(plane.project(pts) - foot, axis=1)
     above = (h > settings.object_height * scale) & (horiz < settings.object_radius * scale)
-    info.update({"inliers": int(inl.sum()), "inlier_fraction": float(inl.mean()),
-                 "object_points": int(above.sum()), "aim_height": float(plane.height(target) / scale),
-                 "camera_elevation_deg": {"min": float(elev.min()), "median": float(np.median(elev)),
-                                          "max": float(elev.max())}})
-    if inl.sum() < settings.min_inliers or inl.mean() < settings.min_inlier_fraction:
+    info = {"inliers": int(inl.sum()), "inlier_fraction": float(inl.mean()),
+            "object_points": int(above.sum()), "aim_height": float(plane.height(target) / scale),
+            "below_fraction": float(np.mean(h < -tol)),
+            "camera_elevation_deg": {"min": float(elev.min()), "median": float(np.median(elev)),
+                                     "max": float(elev.max())}}
+    min_fraction = settings.min_inlier_fraction_up if second else settings.min_inlier_fraction
+    sin_min = np.sin(np.radians(settings.min_camera_elevation))
+    if second and np.mean(plane.height(centers) / np.linalg.norm(centers - target, axis=1) > sin_min) \
+            < settings.camera_fraction:
+        info["reason"] = "the cameras do not look down on it"
+        return None, info
+    if inl.sum() < settings.min_inliers or inl.mean() < min_fraction:
         info["reason"] = (f"the best plane holds {inl.sum()} of {len(pts)} points ({100 * inl.mean():.0f}%; "
-                          f"need >= {settings.min_inliers} and >= {100 * settings.min_inlier_fraction:.0f}%)")
+                          f"need >= {settings.min_inliers} and >= {100 * min_fraction:.0f}%)")
         return None, info
     if plane.height(target) <= 0:
         info["reason"] = "the cameras aim below the plane: the object is not standing on it"
+        return None, info
+    if second and info["below_fraction"] > settings.max_below:
+        info["reason"] = (f"{100 * info['below_fraction']:.0f}% of the points lie below it (at most "
+                          f"{100 * settings.max_below:.0f}%)")
         return None, info
     if above.sum() < settings.min_object_points:
         info["reason"] = (f"only {above.sum()} points stand above the plane near the point the cameras aim at "
@@ -321,7 +413,8 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
         return None, info
     spread = float(np.median(horiz[inl]) / max(np.median(horiz[above]), 1e-12 * scale))
     info["spread"] = spread
-    if spread <= settings.min_spread:
+    min_spread = settings.min_spread_up if second else settings.min_spread
+    if spread <= min_spread:
         info["reason"] = (f"the plane's {inl.sum()} points lie under the object, not around it (their median "
                           f"distance from its foot is {spread:.2f}x the object points'): a flat part of the "
                           "object, not a table it stands on")

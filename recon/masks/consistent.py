@@ -132,9 +132,11 @@ def fill_enclosed(mask: np.ndarray, support: np.ndarray, enclosed: float) -> np.
 
 
 def consistent_masks(masks: list[np.ndarray], cams: CameraSet, settings: ConsistentSettings = ConsistentSettings(),
-                     trusted: frozenset[int] | set[int] = frozenset()) -> tuple[list[np.ndarray], dict]:
+                     trusted: frozenset[int] | set[int] = frozenset(), warn_refused: bool = True
+                     ) -> tuple[list[np.ndarray], dict]:
     """The masks (one (H, W) bool per camera of ``cams``) made consistent across the views (module
-    docstring). Returns the masks and ``info`` (per view the share of pixels added and removed,
+    docstring); ``warn_refused``: say so when the vote is refused (:func:`warn_refusal`; a caller
+    with another way to try says it itself). Returns the masks and ``info`` (per view the share of pixels added and removed,
     the hull's voxel size and bounding box); with fewer than ``min_views`` views the masks come
     back unchanged.
 
@@ -156,10 +158,8 @@ def consistent_masks(masks: list[np.ndarray], cams: CameraSet, settings: Consist
     if voters is not None and len(voters) < n:
         out2, info2 = _vote(masks, cams, wcams, values, voters, settings)
     if not info2.get("applied"):
-        if "median_kept" in info:
-            log.warning("flash-falloff masks not made consistent: %s. The object is probably darker than what lies "
-                        "behind it in many views (a dark object before a lit wall or floor): give masks/<stem>.png in "
-                        "the capture, or photograph it with nothing lit behind it", info["reason"])
+        if "median_kept" in info and warn_refused:
+            warn_refusal(info)
         return out, info
     outliers = [cams.frames[i].stem for i in range(n) if i not in set(voters)]
     log.warning("flash-falloff masks: %d of %d views disagree with the others (%s): those views take the silhouette "
@@ -167,6 +167,13 @@ def consistent_masks(masks: list[np.ndarray], cams: CameraSet, settings: Consist
                 ", ".join(outliers[:12]) + (", ..." if len(outliers) > 12 else ""), len(voters),
                 100 * info2["median_kept"])
     return out2, {**info2, "outliers": outliers, "all_views_median_kept": info.get("median_kept")}
+
+
+def warn_refusal(info: dict) -> None:
+    """The warning for a vote that was refused (``info`` of :func:`consistent_masks`)."""
+    log.warning("flash-falloff masks not made consistent: %s. The object is probably darker than what lies "
+                "behind it in many views (a dark object before a lit wall or floor): give masks/<stem>.png in "
+                "the capture, or photograph it with nothing lit behind it", info["reason"])
 
 
 def agreeing_views(values: list[np.ndarray], wcams: CameraSet, settings: ConsistentSettings,
@@ -258,12 +265,13 @@ def _vote(masks, cams, wcams, values, voters: list[int], settings: ConsistentSet
 
 
 def consistent_derived(masks: dict[str, np.ndarray], cams: CameraSet, given: set[str] | frozenset = frozenset(),
-                       settings: ConsistentSettings = ConsistentSettings()) -> tuple[dict[str, np.ndarray], dict]:
+                       settings: ConsistentSettings = ConsistentSettings(), warn_refused: bool = True
+                       ) -> tuple[dict[str, np.ndarray], dict]:
     """:func:`consistent_masks` over every view's mask (``masks`` by stem, one per camera), where
     the capture's own masks (``given``) vote but never change. Returns the masks by stem and
     ``info``, whose ``views`` hold the changed (derived) views only."""
     fixed, info = consistent_masks([masks[c.stem] for c in cams], cams, settings,
-                                   trusted={i for i, c in enumerate(cams) if c.stem in given})
+                                   trusted={i for i, c in enumerate(cams) if c.stem in given}, warn_refused=warn_refused)
     if not info.get("applied"):
         return dict(masks), info
     out = {c.stem: masks[c.stem] if c.stem in given else m for c, m in zip(cams, fixed, strict=True)}

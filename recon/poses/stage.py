@@ -553,7 +553,7 @@ def _consistent_falloff_masks(cams: CameraSet, und_masks: Path, given: set[str],
     (``given``) vote but are never changed. Returns what was done (``applied``; per view the share
     of pixels added and removed)."""
     from recon.io.images import read_mask, write_mask
-    from recon.masks.consistent import consistent_derived
+    from recon.masks.consistent import consistent_derived, warn_refusal
 
     paths = {c.stem: und_masks / f"{c.stem}.png" for c in cams}
     if not all(p.is_file() for p in paths.values()):
@@ -561,7 +561,7 @@ def _consistent_falloff_masks(cams: CameraSet, und_masks: Path, given: set[str],
     if all(c.stem in given for c in cams):
         return {"applied": False, "reason": "every view's mask is given"}
     current = {s: read_mask(p) for s, p in paths.items()}
-    after, info = consistent_derived(current, cams, given)
+    after, info = consistent_derived(current, cams, given, warn_refused=False)  # said below, unless mended
     source = "flash falloff"
     if not info.get("applied") and points_ply is not None and points_ply.is_file():
         # no subset of the views agrees on one object (a near-black object before a lit wall or
@@ -580,6 +580,8 @@ def _consistent_falloff_masks(cams: CameraSet, und_masks: Path, given: set[str],
                 after, info, source = after2, {**info2, "views": {s: v for s, v in info2["views"].items()
                                                                   if s not in given}}, "sparse points"
     if not info.get("applied"):
+        if "median_kept" in info:
+            warn_refusal(info)
         log.info("flash-falloff masks kept view by view: %s", info.get("reason"))
         return {"applied": False, **{k: info[k] for k in ("reason", "median_kept") if k in info}}
     changed = info["views"]
