@@ -29,7 +29,10 @@ them, with no learned weights. The decision is made in 3D, by the views together
    object and the table (Gaussian mixtures of this view; the object's from the pixels the plane
    test sees differ from the table, and from the plain ones whose colour the table does not
    show) weigh in, and a contrast-sensitive smoothness term snaps the outline to the photo's
-   edges.
+   edges. The cut also decides about patches where the view sees the table deep inside the
+   silhouette: the table through a ring's hole, which the vote leaves closed where only the
+   steep views see through it (:func:`refine_view`). The first sweep's table pixels count
+   there, since the occlusion-aware sweep sees none through a hole that the hull fills.
 4. **Cross-check** (:func:`cross_check`): a second hull voted from the cut masks, down to the
    plane (they are silhouettes: the band is no limit to them); each mask keeps what lies inside
    its projection, and a hole in a mask is filled where the hull of the other views is solid
@@ -166,15 +169,32 @@ def beyond_lit_table(cam, plane: SupportPlane, table: np.ndarray, foot: np.ndarr
 
 def refine_view(rgb_linear: np.ndarray, silhouette: np.ndarray, table: np.ndarray, logodds: np.ndarray,
                 low: np.ndarray, margin_px: int, settings: SegmentSettings = SegmentSettings(),
-                seed: int = 0) -> np.ndarray:
+                seed: int = 0, table_deep: np.ndarray | None = None) -> np.ndarray:
     """Step 3 for one view: the object mask (H, W) bool from the hull's ``silhouette``, the pixels
     that see the ``table``, the pixel-sharp plane test as log-odds of the object ``logodds``
     (float, 0 where it says nothing) and the ``low`` region (the hull's extruded foot, where the
     table test cannot tell object from table), all (H, W) at the photo's size; the cut is
-    confined to pixels within ``margin_px`` of the silhouette's outline."""
+    confined to pixels within ``margin_px`` of the silhouette's outline, and of the patches where
+    the view sees the table deep inside it (``table`` or ``table_deep``: pixels an earlier look saw
+    as table, which count there only)."""
+    from scipy import ndimage
+
     guide = display_image(rgb_linear)
     inner = erode(silhouette, margin_px) & ~low
-    active = dilate(silhouette, margin_px) | low
+    deep = np.zeros_like(inner)  # where the cut decides deep inside the silhouette
+    # the table seen deep inside the silhouette (through a ring's hole the hull did not open): the
+    # cut decides there too, within three bands' widths of a patch at least as wide as the band
+    # about the outline (the plane test sees part of a hole's table; colours and edges find the rest)
+    seen = (table if table_deep is None else table | table_deep) & inner
+    if seen.any():
+        labels, n = ndimage.label(seen)
+        sizes = ndimage.sum_labels(seen, labels, index=np.arange(1, n + 1))
+        patches = np.isin(labels, 1 + np.flatnonzero(sizes >= margin_px ** 2))
+        if patches.any():
+            table = table | patches
+            deep = inner & dilate(patches, 3 * margin_px)
+            inner &= ~deep
+    active = dilate(silhouette, margin_px) | low | (silhouette & ~inner)
     z = np.where(silhouette, settings.prior, -settings.prior).astype(np.float64)
     z = z + np.where(low, 0.0, logodds)
     tab = table & ~low
@@ -195,6 +215,11 @@ def refine_view(rgb_linear: np.ndarray, silhouette: np.ndarray, table: np.ndarra
     cost_bg = np.logaddexp(0.0, z)
     cost_bg = np.where(inner, 1e6, cost_bg)  # deep inside the silhouette: object
     m = graph_cut(cost_fg, cost_bg, guide, settings.smoothness, active)
+    if deep.any():
+        # deep inside, only a hole the object encloses opens: a cut that reaches the outline from
+        # there is chance evidence on the object (the dark far wall inside a bowl), not the table
+        # seen through it
+        m = m | (deep & ~holes(m))
     return components_touching(m, inner) if inner.any() else m
 
 
@@ -339,6 +364,9 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
     hull = fine if fine is not None else hull
     # again, occlusion-aware: a neighbour counts where it sees the plane point past this hull
     hidden = ([hull.depth(w) for w in wcams], None if ccams is None else [hull.depth(w) for w in ccams])
+    # the first sweep's table pixels: where this hull hides the plane from the neighbours (a ring's
+    # hole it did not open), the occlusion-aware sweep below can see no table at all
+    first_tables = tables
     evidence = sweep(evidence, hidden, 2 * hull.step)
     tables, carving = table_pixels(evidence)
     C = differences(hidden[0], 2 * hull.step)
@@ -372,7 +400,8 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
                                                 -settings.table_weight, settings.table_weight), 0.0)
         logodds = _resize(logodds.astype(np.float32), cam.width, cam.height)
         margin = int(np.clip(round(3 * _footprint_px(cam, center, hull.step) + 3), 4, 96))
-        m = refine_view(images[i], sil, table, logodds, low, margin, settings, seed=i)
+        m = refine_view(images[i], sil, table, logodds, low, margin, settings, seed=i,
+                        table_deep=_resize_mask(first_tables[i], cam.width, cam.height))
         masks.append(m)
         views[cam.stem] = {"hull_coverage": float(sil.mean()), "table_seen": float(tables[i].mean())}
     timings["refine_s"] = time.perf_counter() - t1
