@@ -241,11 +241,19 @@ def _refine(points: np.ndarray) -> tuple[np.ndarray, float]:
     return n, -float(n @ c)
 
 
+def _looks_down(heights: np.ndarray, centers: np.ndarray, target: np.ndarray, settings: PlaneSettings) -> bool:
+    """Whether ``camera_fraction`` of the cameras (``centers``, at ``heights`` above a plane) look
+    down on it by ``min_camera_elevation``, seen from the aim point ``target``."""
+    rel = heights / np.linalg.norm(centers - target, axis=1)
+    return bool(np.mean(rel > np.sin(np.radians(settings.min_camera_elevation))) >= settings.camera_fraction)
+
+
 def _up_candidates(cams: CameraSet, centers: np.ndarray, target: np.ndarray) -> list[np.ndarray]:
     """Directions the table's normal likely has, from the cameras alone: the mean of their image
     ups (-y; a photo's up is the room's unless the phone was turned, then the mean shrinks and
     is not used) and the normal of the plane through their centres (a person walks around the
-    object at about one height), each turned towards the cameras."""
+    object at about one height), each towards the cameras (the heights searched lie below the
+    point the cameras aim at)."""
     out = []
     ups = -np.stack([c.camera_to_world[:3, 1] for c in cams])
     m = ups.mean(0)
@@ -254,8 +262,7 @@ def _up_candidates(cams: CameraSet, centers: np.ndarray, target: np.ndarray) -> 
     if len(centers) >= 3:
         _, sv, vt = np.linalg.svd(centers - centers.mean(0), full_matrices=False)
         if sv[1] > 1e-9 and sv[2] < 0.5 * sv[1]:  # the centres span a plane, not a line or a ball
-            n = vt[-1] if (centers - target).mean(0) @ vt[-1] > 0 else -vt[-1]
-            out.append(n)
+            out.append(vt[-1] if (centers - target).mean(0) @ vt[-1] > 0 else -vt[-1])
     return out
 
 
@@ -313,7 +320,6 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
         return None, info
     tol = settings.inlier_distance * scale
     rng = np.random.default_rng(settings.seed)
-    sin_min = np.sin(np.radians(settings.min_camera_elevation))
     best, best_count, rejected = None, 0, {"cameras": 0, "object": 0}
     triples = rng.integers(0, len(pts), size=(settings.iterations, 3))
     for tri in triples:
@@ -329,8 +335,7 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
         hc = centers @ n + d
         if np.median(hc) < 0:
             n, d, dist, hc = -n, -d, -dist, -hc
-        rel = hc / np.linalg.norm(centers - target, axis=1)
-        if np.mean(rel > sin_min) < settings.camera_fraction:
+        if not _looks_down(hc, centers, target, settings):
             rejected["cameras"] += 1
             continue
         best, best_count = (n, d), count
@@ -391,9 +396,7 @@ def _judge(candidate: tuple[np.ndarray, float], pts: np.ndarray, centers: np.nda
             "camera_elevation_deg": {"min": float(elev.min()), "median": float(np.median(elev)),
                                      "max": float(elev.max())}}
     min_fraction = settings.min_inlier_fraction_up if second else settings.min_inlier_fraction
-    sin_min = np.sin(np.radians(settings.min_camera_elevation))
-    if second and np.mean(plane.height(centers) / np.linalg.norm(centers - target, axis=1) > sin_min) \
-            < settings.camera_fraction:
+    if second and not _looks_down(plane.height(centers), centers, target, settings):
         info["reason"] = "the cameras do not look down on it"
         return None, info
     if inl.sum() < settings.min_inliers or inl.mean() < min_fraction:
