@@ -23,8 +23,10 @@ outside the mask) is the object's and stays: without it the priors round a strai
 (a mug's: docs/tabletop.md). Only views whose masks the tabletop method made are touched: given
 masks are trusted, and a capture without a plane has no foot to doubt.
 
-:func:`foot_classes` sorts those pixels (:data:`TABLE`: a mask pixel with the table's colour;
-:data:`DOUBT`: one too dark to tell; :data:`OUTSIDE`: outside the mask). With
+:func:`foot_classes` sorts those pixels (:data:`TABLE`: a mask pixel with the table's colour and
+brightness; :data:`DOUBT`: one too dark to tell, or with the table's colour but not its brightness
+(:func:`table_or_object`: an object in the table's colours, whose surface at the foot faces the
+flash at another angle than the table); :data:`OUTSIDE`: outside the mask). With
 ``loss.uncertain_foot_mode: background`` (the default) a :data:`TABLE` pixel becomes background:
 target 0 at full weight, so a surface over it is pushed off, as over any background pixel, and
 the skirt is carved rather than only left to the priors (wood-blob 0.0041 -> 0.0028, the dark
@@ -50,6 +52,8 @@ log = logging.getLogger(__name__)
 # a mask pixel at the foot whose chromaticity lies farther than this many standard deviations from
 # the table's beside the foot is the object's, whatever the masks' doubt: it stays in the image term
 TABLE_SIGMAS = 3.0
+
+KEEP, DOUBT, TABLE, OUTSIDE = 0, 1, 2, 3  # foot_classes
 
 
 @dataclass(frozen=True)
@@ -122,6 +126,33 @@ def table_like(table: np.ndarray, pixels: np.ndarray, k: float = TABLE_SIGMAS) -
     return too_dark(table, pixels) | (np.einsum("ni,ij,nj->n", x, np.linalg.inv(cov), x) <= k * k)
 
 
+# a doubted mask pixel brighter or darker than the table beside the foot by more than this factor
+# (beyond the 5th-95th percentiles of its brightness) is not the table seen at that distance from
+# the flash: it stays in doubt rather than being made background
+BRIGHTNESS_MARGIN = 1.25
+
+
+def table_or_object(table: np.ndarray, pixels: np.ndarray, k: float = TABLE_SIGMAS,
+                    margin: float = BRIGHTNESS_MARGIN) -> np.ndarray:
+    """(m,) int8: :data:`TABLE`, :data:`DOUBT` or :data:`KEEP` for the doubted mask ``pixels (m, 3)``.
+
+    KEEP: not :func:`table_like` the ``table (n, 3)`` pixels beside the foot. TABLE: table-like in
+    chromaticity and, in brightness, within ``margin`` of the 5th-95th percentiles of the table's:
+    the table under an overhang is at the same distance from the flash and seen at the same angle
+    as the table beside the foot, where the object's own surface there, turned towards or away
+    from the camera, is brighter or darker (a vase in the table's colours whose foot would be made
+    background: docs/tabletop.md, session 24). DOUBT: too dark to tell, or table-like in colour
+    only. With fewer than 20 table pixels every pixel is DOUBT."""
+    like = table_like(table, pixels, k)
+    dark = too_dark(table, pixels)
+    if len(table) < 20:
+        return np.full(len(pixels), DOUBT, np.int8)
+    lo, hi = np.percentile(table.sum(-1), [5, 95])
+    b = pixels.sum(-1)
+    bright = (b >= lo / margin) & (b <= hi * margin)
+    return np.where(like, np.where(~dark & bright, TABLE, DOUBT), KEEP).astype(np.int8)
+
+
 def too_dark(table: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     """(m,) bool: ``pixels`` under a twentieth of the ``table`` pixels' median brightness (their
     chromaticity is noise); all True when fewer than 20 table pixels (nothing to compare with)."""
@@ -150,9 +181,6 @@ def _under_overhang(scene, zone: FootZone, axis, B, o, d, t, tp, doubt: np.ndarr
     up = np.concatenate([start, np.broadcast_to(plane.normal, start.shape)], 1).astype(np.float32)
     out[idx] = np.isfinite(scene.cast_rays(o3d.core.Tensor(up))["t_hit"].numpy())
     return out.reshape(doubt.shape)
-
-
-KEEP, DOUBT, TABLE, OUTSIDE = 0, 1, 2, 3  # foot_classes
 
 
 def foot_classes(zone: FootZone, cameras, masks: np.ndarray, images: np.ndarray | None = None) -> np.ndarray:
@@ -205,9 +233,7 @@ def foot_classes(zone: FootZone, cameras, masks: np.ndarray, images: np.ndarray 
         out[k][inside] = DOUBT
         if images is not None:
             # a mask pixel in the zone is doubted only when it looks like the table: the table's
-            # colour from the zone's pixels outside the mask (the table beside the foot)
+            # colour and brightness from the zone's pixels outside the mask (the table beside the foot)
             table = images[k][doubt & (masks[k] <= 0.5)]
-            like = table_like(table, images[k][inside])
-            dark = too_dark(table, images[k][inside])
-            out[k][inside] = np.where(like, np.where(dark, DOUBT, TABLE), KEEP)
+            out[k][inside] = table_or_object(table, images[k][inside])
     return out

@@ -164,3 +164,44 @@ def test_zone_only_for_tabletop_masks_with_a_band(tmp_path):
     summary.update(views={"a": {"source": "tabletop"}}, segment=None)
     p.write_text(json.dumps(summary))
     assert foot_zone(p, PLANE, ball, 1.0) is None  # no band recorded
+
+
+@pytest.mark.parametrize("shade", [0.2, 1.8])
+def test_an_object_in_the_tables_colours_is_not_made_background(shade):
+    """A ball in the table's own colour (wood on wood): chromaticity cannot tell its foot from the
+    table, but its surface there, turned away from or towards the flash, is darker or brighter
+    than the table beside it at the same distance. Its pixels stay in doubt, never background;
+    the skirt, which shows the table, is still made background."""
+    from recon.optimize.foot import DOUBT, TABLE
+
+    ball = _ball()
+    hull = _hull(ball, 0.2)
+    cams = [_camera("low", 10.0), _camera("high", 60.0)]
+    true = np.stack([_silhouette(ball, c) for c in cams])
+    masks = np.stack([_silhouette(hull, c) for c in cams])
+    zone = FootZone(PLANE, 0.2, hull, frozenset({"low", "high"}))
+    wood = np.array([0.5, 0.35, 0.2], np.float32)
+    rng = np.random.default_rng(2)
+    table = rng.uniform(0.6, 1.0, true.shape + (1,)).astype(np.float32)
+    photos = wood * np.where(true[..., None], np.float32(shade), table)
+    cls = zone.classes(cams, masks.astype(np.float32), photos)
+    skirt = masks[0] & ~true[0]
+    assert (cls[0][skirt] == TABLE).mean() > 0.9
+    foot = true[0] & (cls[0] != 0)
+    assert foot.sum() > 10 and np.all(cls[0][foot] == DOUBT)
+    # the same ball in the table's brightness too: colours cannot tell it, and it is made background
+    # (the limit of the test: docs/tabletop.md)
+    same = wood * np.where(true[..., None], np.float32(0.8), table)
+    assert (zone.classes(cams, masks.astype(np.float32), same)[0][foot] == TABLE).mean() > 0.9
+
+
+def test_table_or_object_extremes():
+    from recon.optimize.foot import DOUBT, KEEP, TABLE, table_or_object
+
+    rng = np.random.default_rng(3)
+    wood = np.array([0.5, 0.35, 0.2]) * rng.uniform(0.5, 1.0, (100, 1))
+    pix = np.array([[0.35, 0.245, 0.14], [5.0, 3.5, 2.0], [0.2, 0.3, 0.6], [0.0, 0.0, 0.0], [1e-30, 0, 0]])
+    assert table_or_object(wood, pix).tolist() == [TABLE, DOUBT, KEEP, DOUBT, DOUBT]
+    assert np.all(table_or_object(wood[:5], pix) == DOUBT)  # too few table pixels to compare with
+    assert table_or_object(np.zeros((100, 3)), pix).dtype == np.int8  # a black table: no NaN, no error
+    assert table_or_object(wood, np.zeros((0, 3))).shape == (0,)
