@@ -224,9 +224,10 @@ class LossSettings:
         object's foot or the table beside it, up to this multiple of the masks' parallax band
         above the table, where the mesh overhangs them, are in doubt (:mod:`recon.optimize.foot`,
         docs/tabletop.md); 0: off.
-    uncertain_foot_mode : "background" (default): a doubted mask pixel whose colour is the table's
-        becomes background (target 0, full weight), so the render is pushed off the table the
-        masks took in; one too dark to tell gets ``uncertain_foot_weight``. "exclude": every
+    uncertain_foot_mode : "background" (default): a doubted mask pixel whose colour and brightness
+        are the table's becomes background (target 0, full weight), so the render is pushed off the
+        table the masks took in; one too dark to tell, or with the table's colour but not its
+        brightness, gets ``uncertain_foot_weight``. "exclude": every
         doubted pixel gets ``uncertain_foot_weight`` (session 17's form).
     uncertain_foot_weight : the weight of the doubted pixels left in doubt (0: out of the term).
     """
