@@ -520,7 +520,22 @@ def test_sfm_tracks_reproject_through_the_object_frame_cameras(synthetic_sfm):
     tr = SfmTracks.load(results / "poses" / "sparse", est, stems, min_views=2)
     r = tr.reprojection(list(est.frames))
     assert tr.n_observations > 20 * len(stems)
-    assert r.mean() == pytest.approx(diag["mean_reprojection_error_px"], rel=0.05)
+    # COLMAP's own model, observation by observation, as the reference (its
+    # compute_mean_reprojection_error averages the points' stored errors instead: 5-8 % off the
+    # per-observation mean, and by machine)
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(results / "poses" / "sparse"))
+    ref = []
+    for im in rec.images.values():
+        cam = rec.cameras[im.camera_id]
+        for p in im.points2D if im.has_pose else []:
+            if p.has_point3D():
+                uv = cam.img_from_cam(im.cam_from_world() * rec.points3D[p.point3D_id].xyz)
+                ref.append(np.linalg.norm(np.asarray(uv)[:2] - p.xy))
+    assert len(ref) == tr.n_observations
+    assert r.mean() == pytest.approx(np.mean(ref), rel=0.02)
+    assert np.median(r) == pytest.approx(np.median(ref), rel=0.05)
     assert np.all(np.bincount(tr.point) >= 2)
     # the points sit on the object, inside the object frame's box
     assert np.median(np.abs(tr.points)) < 1.0
