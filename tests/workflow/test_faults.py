@@ -65,6 +65,10 @@ KILL_AT = {
 SNAKEMAKE_BOOKKEEPING = ("LockException", "IncompleteFilesException", "--unlock", "--rerun-incomplete")
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class Run:
     """One snakemake process in its own process group (so a signal can reach all of it)."""
 
@@ -74,8 +78,11 @@ class Run:
                f"results={results}", "preset=draft", *extra]
         env = {**os.environ, "PYTHONPATH": str(repo_root), "OMP_WAIT_POLICY": "PASSIVE"}
         self.out = open(log, "w")  # noqa: SIM115 (closed in wait)
+        # SIGINT back to its default in the child: a shell that starts jobs in the background
+        # (`.ci/run &`, nohup) makes them ignore it, and the children inherit that, so a Ctrl-C
+        # would reach no one and the run would finish as if none had been sent
         self.proc = subprocess.Popen(cmd, cwd=repo_root, env=env, stdout=self.out, stderr=subprocess.STDOUT,
-                                     start_new_session=True)
+                                     start_new_session=True, preexec_fn=_default_sigint)
 
     def kill_when(self, results: Path, pattern: str, sig=signal.SIGKILL, group=True, timeout=600) -> bool:
         """Send ``sig`` (to the whole group, or to snakemake alone; None: send nothing) once
