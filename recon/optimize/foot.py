@@ -143,10 +143,10 @@ def table_or_object(table: np.ndarray, pixels: np.ndarray, k: float = TABLE_SIGM
     from the camera, is brighter or darker (a vase in the table's colours whose foot would be made
     background: docs/tabletop.md, session 24). DOUBT: too dark to tell, or table-like in colour
     only. With fewer than 20 table pixels every pixel is DOUBT."""
-    like = table_like(table, pixels, k)
-    dark = too_dark(table, pixels)
     if len(table) < 20:
         return np.full(len(pixels), DOUBT, np.int8)
+    like = table_like(table, pixels, k)
+    dark = too_dark(table, pixels)
     lo, hi = np.percentile(table.sum(-1), [5, 95])
     b = pixels.sum(-1)
     bright = (b >= lo / margin) & (b <= hi * margin)
