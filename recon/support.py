@@ -248,7 +248,7 @@ def _looks_down(heights: np.ndarray, centers: np.ndarray, target: np.ndarray, se
     return bool(np.mean(rel > np.sin(np.radians(settings.min_camera_elevation))) >= settings.camera_fraction)
 
 
-def _up_candidates(cams: CameraSet, centers: np.ndarray, target: np.ndarray) -> list[np.ndarray]:
+def up_candidates(cams: CameraSet, centers: np.ndarray, target: np.ndarray) -> list[np.ndarray]:
     """Directions the table's normal likely has, from the cameras alone: the mean of their image
     ups (-y; a photo's up is the room's unless the phone was turned, then the mean shrinks and
     is not used) and the normal of the plane through their centres (a person walks around the
@@ -292,7 +292,7 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
     above it, and points stand on it near the aim point.
 
     The plane with the most points (RANSAC over triples) is tried first. When it fails, planes
-    across the cameras' up (:func:`_up_candidates`) at the heights where points gather are tried:
+    across the cameras' up (:func:`up_candidates`) at the heights where points gather are tried:
     a table that holds few of the points (a close-up capture of a strongly textured object: 4 %
     of SfM's points on the table) is rarely drawn by RANSAC's triples, and the plane with the
     most points is then a flat cap of the object. Such a plane must hold ``min_inlier_fraction_up``
@@ -350,7 +350,7 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
             return plane, info
     # a second look: planes across the cameras' up, at the heights where points gather
     found = []
-    for up in _up_candidates(cams, centers, target):
+    for up in up_candidates(cams, centers, target):
         for level in _height_levels(pts, up, float(target @ up), tol, settings.min_inliers):
             plane, judged = _judge((up, -level), pts, centers, target, scale, tol, settings, second=True)
             if plane is not None:

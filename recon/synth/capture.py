@@ -161,8 +161,9 @@ def make_capture(out_dir: str | os.PathLike, settings: SynthSettings,
         gt_plane = SupportPlane(np.array([0.0, 0.0, 1.0]), -float(lo[2]))
         cams = tabletop_cameras(s, target=0.5 * (lo + hi) / s.scale)
     elif tabletop:
-        log.info("synth: table texture %d^2", s.tabletop.table_texture_size)
-        table_rgb = table_texture(s.tabletop.table_texture_size, s.tabletop.table_half_size, s.seed)
+        log.info("synth: table texture %d^2 (%s)", s.tabletop.table_texture_size, s.tabletop.table)
+        table_rgb = table_texture(s.tabletop.table_texture_size, s.tabletop.table_half_size, s.seed,
+                                  s.tabletop.table)
         if s.tabletop.marker_square > 0:
             marker = add_marker_mat(table_rgb, s.tabletop.table_half_size, s.tabletop.marker_square)
             marker = {**marker, "square": marker["square"] * s.scale, "marker": marker["marker"] * s.scale,

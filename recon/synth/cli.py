@@ -18,6 +18,7 @@ import logging
 
 from recon import sections
 from recon.synth.capture import FORMATS, PRESETS, SCENES, SynthSettings, make_capture
+from recon.synth.settings import TABLES
 from recon.synth.imaging import TONE_CURVES
 from recon.synth.shapes import OBJECT_KINDS
 
@@ -54,6 +55,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--background", type=float,
                    help="tabletop: albedo of the far backdrop (0: black beyond the table)")
     p.add_argument("--table-texture-size", type=int, dest="table_texture_size")
+    p.add_argument("--table", choices=TABLES, help="tabletop: the table top, wood (textured) or plain (a light "
+                   "laminate with almost no texture)")
     p.add_argument("--marker-square", type=float, dest="marker_square",
                    help="tabletop: print a ChArUco mat with squares of this side under the object")
     v = p.add_argument_group("scene variations that make masks hard (each off by default)")
@@ -121,7 +124,7 @@ def command_line(args: argparse.Namespace) -> str:
             "exposure_variation": "--exposure-variation", "mesh_level": "--mesh-level",
             "texture_size": "--texture-size", "albedo": "--albedo", "specular": "--specular",
             "roughness": "--roughness", "scale": "--scale", "scene": "--scene", "rings": "--rings",
-            "background": "--background", "table_texture_size": "--table-texture-size",
+            "background": "--background", "table_texture_size": "--table-texture-size", "table": "--table",
             "marker_square": "--marker-square", "ambient": "--ambient", "exposure_jitter": "--exposure-jitter",
             "wb_jitter": "--wb-jitter", "tone_curve": "--tone-curve", "tone_contrast": "--tone-contrast",
             "jpeg_quality": "--jpeg-quality", "palette": "--palette", "wall": "--wall",

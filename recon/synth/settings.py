@@ -24,6 +24,7 @@ from recon.synth.shapes import OBJECT_KINDS
 
 FORMATS = ("dng", "exr", "png16", "png8", "jpg")
 SCENES = ("void", "tabletop", "tabletop_void", "stand")
+TABLES = ("wood", "plain")
 EXTENT_RADIUS = 0.95 * 3**0.5
 """Radius of a ball holding every generated object."""
 
@@ -133,6 +134,9 @@ class TabletopSettings:
         mug has a flat base already).
     marker_square : side of the squares of a ChArUco mat printed on the table under the object
         (object units; 0: no mat).
+    table : the table top: ``wood`` (grain, rings, blotches and knots: SIFT and the plane sweep find
+        texture everywhere) or ``plain`` (a light laminate with faint mottling: almost no texture,
+        like a white desk; the masks and SfM must do without the table's features).
     """
 
     elevation_range: tuple = (15.0, 60.0)
@@ -146,6 +150,7 @@ class TabletopSettings:
     background_distance: float = 30.0
     base_cut: float = 0.08
     marker_square: float = 0.0
+    table: str = "wood"
 
     def __post_init__(self):
         object.__setattr__(self, "elevation_range", _floats(self.elevation_range))
@@ -270,6 +275,8 @@ class SynthSettings:
                              "object (> 2)")
         if not 16 <= t.table_texture_size <= 8192:
             raise SynthError(f"table_texture_size={t.table_texture_size}: use 16 to 8192")
+        if t.table not in TABLES:
+            raise SynthError(f"table={t.table!r}: use one of {', '.join(TABLES)}")
         if not 0.0 <= t.background <= 1.0:
             raise SynthError(f"background={t.background}: an albedo in [0, 1] (0: none)")
         if self.scene in ("tabletop", "stand") and t.background > 0 \

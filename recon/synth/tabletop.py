@@ -60,18 +60,26 @@ def table_mesh(z_table: float, half_size: float) -> Mesh:
     return Mesh(v, f, uv, f.copy())
 
 
-def table_texture(size: int, half_size: float, seed: int = 0) -> np.ndarray:
-    """``(size, size, 3)`` float32 linear diffuse albedo of a wooden table top.
+def table_texture(size: int, half_size: float, seed: int = 0, kind: str = "wood") -> np.ndarray:
+    """``(size, size, 3)`` float32 linear diffuse albedo of a table top.
 
     Texel (i, j) is the table point x = -half + (j + 0.5) * 2 half / size, y = half - (i + 0.5) *
-    2 half / size (see :func:`table_mesh`). Long grain along x (stretched fractal noise), growth
-    rings warped by low-frequency noise, blotches (a few tenths of a unit, SIFT-sized at typical
-    distances) and small dark knots and marks.
+    2 half / size (see :func:`table_mesh`). ``kind="wood"``: long grain along x (stretched fractal
+    noise), growth rings warped by low-frequency noise, blotches (a few tenths of a unit,
+    SIFT-sized at typical distances) and small dark knots and marks. ``kind="plain"``: a light warm
+    grey laminate (albedo about 0.55) whose mottling varies by +-2 %: a plain desk, with almost no
+    texture for SIFT or the plane sweep.
     """
     step = 2.0 * half_size / size
     c = -half_size + (np.arange(size) + 0.5) * step
     x, y = np.meshgrid(c, c[::-1])
     p = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1)
+    if kind == "plain":
+        mottle = 0.02 * fbm(p, 1.5, octaves=4, seed=seed + 25)
+        rgb = np.array([0.58, 0.55, 0.50]) * (1.0 + mottle[:, None])
+        return rgb.reshape(size, size, 3).astype(np.float32)
+    if kind != "wood":
+        raise ValueError(f"table kind {kind!r}: use 'wood' or 'plain'")
     warp = fbm(p * np.array([0.15, 0.6, 0.0]), 1.0, octaves=3, seed=seed + 21)
     rings = 0.5 + 0.5 * np.sin(2 * np.pi * (3.0 * p[:, 1] + 1.6 * warp))
     rings = rings**3

@@ -130,6 +130,19 @@ def test_marker_mat_is_a_detectable_charuco_board(tmp_path):
         tt.add_marker_mat(tt.table_texture(64, 4.0), 4.0, square=2.0)
 
 
+def test_plain_table_has_almost_no_texture():
+    """The plain table (a white desk): its albedo varies by a few percent at most, where the wooden
+    one's varies by a factor of several (what SIFT and the masks' plane sweep feed on)."""
+    plain = tt.table_texture(256, 4.0, seed=3, kind="plain")
+    wood = tt.table_texture(256, 4.0, seed=3)
+    assert plain.shape == wood.shape == (256, 256, 3) and np.isfinite(plain).all()
+    lum, wlum = plain.mean(-1), wood.mean(-1)
+    assert 0.45 < lum.mean() < 0.65 and lum.std() / lum.mean() < 0.03
+    assert np.percentile(lum, 99) / np.percentile(lum, 1) < 1.1 < 2.0 < np.percentile(wlum, 99) / np.percentile(wlum, 1)
+    with pytest.raises(ValueError, match="table kind"):
+        tt.table_texture(16, 4.0, kind="marble")
+
+
 def test_marker_mat_capture_records_it(tmp_path):
     s = sections.replace(SynthSettings(), **{**TABLETOP_TEST, "n_views": 2, "width": 48, "height": 36, "spp": 2, "mesh_level": 2,
                          "texture_size": 64, "table_texture_size": 256, "marker_square": 0.5, "scale": 0.1,
@@ -153,10 +166,10 @@ def test_void_captures_record_no_tabletop_settings():
 def test_cli_tabletop_options_round_trip():
     args = build_parser().parse_args(["synth", "out", "--preset", "tabletop", "--object", "mug",
                                       "--elevations", "20", "50", "--rings", "2", "--background", "0",
-                                      "--marker-square", "0.4", "--views", "12"])
+                                      "--marker-square", "0.4", "--views", "12", "--table", "plain"])
     s = settings_from_args(args)
-    assert (s.scene, s.object, s.tabletop.elevation_range, s.tabletop.rings, s.tabletop.background, s.tabletop.marker_square) == \
-        ("tabletop", "mug", (20.0, 50.0), 2, 0.0, 0.4)
+    assert (s.scene, s.object, s.tabletop.elevation_range, s.tabletop.rings, s.tabletop.background, s.tabletop.marker_square,
+            s.tabletop.table) == ("tabletop", "mug", (20.0, 50.0), 2, 0.0, 0.4, "plain")
     again = settings_from_args(build_parser().parse_args(command_line(args).split()[3:]))
     assert again == s
 
@@ -171,6 +184,7 @@ def test_cli_tabletop_options_round_trip():
     ({"background_distance": 6.0}, "background_distance"),
     ({"base_cut": 0.7}, "base_cut"),
     ({"marker_square": -1.0}, "marker_square"),
+    ({"table": "marble"}, "table"),
 ])
 def test_bad_tabletop_settings_raise(change, match):
     with pytest.raises(SynthError, match=match):

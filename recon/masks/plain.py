@@ -1,0 +1,292 @@
+"""A plain table: a support plane with no texture, told from the object by the flash's shading.
+
+On a plain desk (white laminate, a painted board) SIFT finds almost no points on the table, so
+the support plane cannot be fitted to the sparse points, and the flash-falloff masks that are
+used without a plane take the lit table in with the object (on such a capture the visual hull
+became a slab of table: silhouette IoU 0.37 with its masks, genus 8). The flash gives a model of
+the table instead. It sits at the camera, so a plane point at distance r from it, whose normal
+makes the angle theta with the ray, receives ``cos(theta) / r^2 = h / r^3`` (h: the camera's
+height above the plane; :func:`recon.masks.geometry.flash_shading`). A plain table of one albedo
+therefore shows, in each view, ``log B = a + b log(h / r^3)``: one gain per view (exposure, the
+flash's power, the albedo) and an exponent b shared by the views (1 in linear photos; a phone's
+tone curve, imperfectly undone by linearize, scales it). No texture enters it.
+
+:func:`fit_plain_table` fits that model over a ring of the plane around the object's foot and
+says whether the table is plain: the model explains most of the ring's pixels to a few percent
+and the table's chromaticity to 0.05. A wooden table is not plain (its albedo varies by a
+factor of several: 7-25 % of its ring explained on the family's captures, 51 % on the weakly
+textured one, against 60-79 % on a plain one). :func:`plain_table` is what the masks use when the
+sparse points give no plane: the plain table's pixels in every view, to take out of the
+flash-falloff masks.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from recon.io.cameras import CameraSet
+from recon.masks.common import LUMA
+from recon.masks.evidence import resized, working_cameras
+from recon.masks.geometry import flash_shading, plane_points
+from recon.support import SupportPlane, aim_point, scene_scale
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PlainSettings:
+    """Settings of the plain-table model. Distances on the plane are fractions of the scene scale
+    (the median camera distance from the point the cameras aim at)."""
+
+    ring: tuple = (0.3, 0.8)  # the model is fitted on plane points this far from the object's foot
+    tolerance: float = 0.1  # |log residual| of a plain table's pixel (a 10 % brightness error)
+    chroma_tolerance: float = 0.05  # ... and the largest difference of its chromaticity from the table's ...
+    max_texture: float = 0.04  # ... and the std of its residual in a 3 x 3 window
+    min_explained: float = 0.45  # the table is plain when the model explains this share of the ring's lit pixels
+    # in the median view (the object hides part of the ring, its shadow another)
+    slope: tuple = (0.5, 8.0)  # plausible exponents b of the shading (1: linear photos)
+    work_size: int = 320  # long side of the images the model is fitted on
+    # the plane's height (only the ring depends on it): the lowest level (bins of foot_bin x the scene scale) where
+    # the points below the aim point gather, at least foot_points of them and foot_share of those
+    foot_bin: float = 0.01
+    foot_points: int = 10
+    foot_share: float = 0.005
+
+    close_px: int = 2  # object_mask: the table's pixels closed by this (px at the working size) ...
+    open_px: int = 2  # ... the rest opened by this (px at the image's size) ...
+    unlit_fraction: float = 0.1  # ... and the background darker than this share of the lit table left out
+
+    def __post_init__(self):
+        lo, hi = self.ring
+        if not 0 <= lo < hi:
+            raise ValueError(f"plain.ring must be 0 <= inner < outer, got {self.ring}")
+        if not 0 < self.tolerance < 1 or not 0 < self.chroma_tolerance < 1 or not 0 < self.min_explained < 1:
+            raise ValueError("plain.tolerance, chroma_tolerance and min_explained must be in (0, 1)")
+
+
+@dataclass
+class PlainTable:
+    """The fitted model: ``plain`` (the photos show a plain table lit as the plane would be),
+    the shared exponent ``slope``, per view ``gain`` and ``explained`` (the share of the ring's
+    lit pixels within the tolerance), the table's ``chroma`` (rgb / luminance)."""
+
+    plain: bool
+    slope: float
+    gain: np.ndarray
+    explained: np.ndarray
+    chroma: np.ndarray
+    reason: str
+
+    def summary(self) -> dict:
+        return {"plain": bool(self.plain), "slope": float(self.slope),
+                "explained_median": float(np.median(self.explained)) if len(self.explained) else 0.0,
+                "chroma": [float(c) for c in self.chroma], "reason": self.reason}
+
+
+def _view_terms(image: np.ndarray, cam, plane: SupportPlane, foot: np.ndarray, settings: PlainSettings):
+    """Per pixel of ``cam`` (the working size): log luminance, log shading, chromaticity, the
+    plane distance from ``foot`` and where the ray meets the plane in front of the camera."""
+    import cv2
+
+    rgb = np.nan_to_num(np.maximum(resized(image, (cam.width, cam.height))[:, :, :3], 0.0)).astype(np.float32)
+    rgb = cv2.GaussianBlur(rgb, (0, 0), 1.0).astype(np.float64)  # sensor and JPEG noise, not the table, vary per pixel
+    lum = rgb @ LUMA
+    P, hit = plane_points(cam, plane)
+    shade = flash_shading(cam.center, P, plane)
+    ok = hit & (lum > 1e-8) & (shade > 0) & np.isfinite(shade)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_l = np.where(ok, np.log(np.where(ok, lum, 1.0)), 0.0)
+        log_s = np.where(ok, np.log(np.where(ok, shade, 1.0)), 0.0)
+        chroma = np.where(ok[..., None], rgb / np.where(ok, lum, 1.0)[..., None], 0.0)
+    dist = np.linalg.norm(P - np.asarray(foot, float), axis=-1)
+    return log_l, log_s, chroma, dist, ok
+
+
+def fit_plain_table(images: list[np.ndarray], cams: CameraSet, plane: SupportPlane,
+                    settings: PlainSettings = PlainSettings()) -> tuple[PlainTable, list[np.ndarray]]:
+    """Fit ``log B = gain_i + slope * log(h / r^3)`` on the ring of ``plane`` about the object's
+    foot in every view; return the model and, per view, the pixels the model explains
+    (``(H, W)`` bool at the working size of ``settings.work_size``: the plain table's pixels,
+    anywhere on the plane)."""
+    import cv2
+
+    wcams = working_cameras(cams, settings.work_size)
+    target = aim_point(cams)
+    scale = scene_scale(cams, target)
+    foot = plane.project(target)
+    terms = [_view_terms(im, w, plane, foot, settings) for im, w in zip(images, wcams, strict=True)]
+    lo, hi = settings.ring[0] * scale, settings.ring[1] * scale
+    rings = [ok & (dist >= lo) & (dist <= hi) for _, _, _, dist, ok in terms]
+    n = len(terms)
+    empty = PlainTable(False, 0.0, np.zeros(n), np.zeros(n), np.ones(3), "")
+    if sum(int(r.sum()) for r in rings) < 100 * max(n, 1):
+        empty.reason = "the views see too little of the plane around the object"
+        return empty, [np.zeros(t[0].shape, bool) for t in terms]
+    # the exponent: per view a robust line through (log shading, log luminance), then their median
+    slopes, gains = [], np.zeros(n)
+    for (log_l, log_s, _, _, _), ring in zip(terms, rings, strict=True):
+        sel = ring
+        if sel.sum() < 100:
+            continue
+        x, y = log_s[sel], log_l[sel]
+        keep, b = np.ones(len(x), bool), None
+        for _ in range(4):  # the object and its shadow in the ring are outliers of the table's line
+            if keep.sum() < 50 or np.ptp(x[keep]) < 1e-6:
+                break
+            b, a = np.polyfit(x[keep], y[keep], 1)
+            r = y - (a + b * x)
+            keep = np.abs(r - np.median(r[keep])) < 2.5 * settings.tolerance
+        if b is not None:
+            slopes.append(float(b))
+    if not slopes:
+        empty.reason = "no view's ring of the plane fits a line"
+        return empty, [np.zeros(t[0].shape, bool) for t in terms]
+    slope = float(np.median(slopes))
+    # the gains with the exponent shared, the table's chromaticity from the pixels the model keeps
+    kept_chroma = []
+    for k, ((log_l, log_s, chroma, _, _), ring) in enumerate(zip(terms, rings, strict=True)):
+        sel = ring
+        if sel.sum() < 100:
+            continue
+        r = log_l[sel] - slope * log_s[sel]
+        gains[k] = float(np.median(r))
+        for _ in range(3):
+            close = np.abs(r - gains[k]) < settings.tolerance
+            if close.sum() < 50:
+                break
+            gains[k] = float(np.median(r[close]))
+        close = np.abs(r - gains[k]) < settings.tolerance
+        if close.sum() >= 50:
+            kept_chroma.append(np.median(chroma[sel][close], axis=0))
+    table_chroma = np.median(kept_chroma, axis=0) if kept_chroma else np.ones(3)
+    explained, pixels = np.zeros(n), []
+    for k, ((log_l, log_s, chroma, _, ok), ring) in enumerate(zip(terms, rings, strict=True)):
+        res = np.where(ok, log_l - slope * log_s - gains[k], 0.0)
+        # a plain table has no texture: its residual is flat in a small window (wood grain, a
+        # pattern or the object's outline is not)
+        mean = cv2.blur(res, (3, 3))
+        flat = np.sqrt(np.maximum(cv2.blur(res * res, (3, 3)) - mean * mean, 0.0)) < settings.max_texture
+        fits = ok & flat & (np.abs(res) < settings.tolerance) \
+            & (np.abs(chroma - table_chroma).max(-1) < settings.chroma_tolerance)
+        explained[k] = float(fits[ring].mean()) if ring.sum() >= 100 else 0.0
+        pixels.append(fits)
+    med = float(np.median(explained))
+    lo_s, hi_s = settings.slope
+    plain = bool(med >= settings.min_explained and lo_s <= slope <= hi_s)
+    reason = (f"the flash's shading of the plane explains {100 * med:.0f}% of the ring's lit pixels in the median "
+              f"view (a plain table needs >= {100 * settings.min_explained:.0f}%), exponent {slope:.2f}")
+    model = PlainTable(plain, slope, gains, explained, table_chroma, reason)
+    if not plain:
+        pixels = [np.zeros_like(p) for p in pixels]
+    return model, pixels
+
+
+def _foot_level(h: np.ndarray, step: float, least: float) -> float:
+    """The lowest height of ``h`` where at least ``least`` values lie within two bins of ``step``
+    (the lowest value when none does)."""
+    edges = np.arange(h.min() - step, h.max() + 2 * step, step)
+    counts, _ = np.histogram(h, edges)
+    window = np.convolve(counts, np.ones(2, int), mode="valid")
+    dense = np.flatnonzero(window >= least)
+    return float(edges[dense[0]]) if len(dense) else float(h.min())
+
+
+def plain_table(points: np.ndarray, images: list[np.ndarray], cams: CameraSet,
+                settings: PlainSettings = PlainSettings()) -> tuple[list[np.ndarray] | None, dict]:
+    """Per view the pixels of a plain table under the object (``(H, W)`` bool at the working
+    size), or None when the photos show none; and the diagnostics with ``reason``.
+
+    Used when the sparse points hold too few of the table's to fit its plane (a plain desk):
+    the normal is the cameras' up (:func:`recon.support.up_candidates`), the height the foot of
+    the object's points (the lowest level where the points below the point the cameras aim at,
+    near its axis, gather). The table's pixels do not depend on that height (the shading's
+    pattern is ``|cos|^3 / h^2``: the height scales each view by one gain), only the ring the
+    model is fitted on does. The height itself is not known well enough to stand the object on
+    it (SfM's stray points under a glossy table pull it down; the flash's shading cannot tell
+    it), so the caller keeps the object in the void and uses the table's pixels only to take
+    the table out of the flash-falloff masks."""
+    from recon.support import up_candidates
+
+    pts = np.asarray(points, float).reshape(-1, 3)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    target = aim_point(cams)
+    scale = scene_scale(cams, target)
+    centers = np.stack([c.center for c in cams])
+    tried, best = [], None
+    for up in up_candidates(cams, centers, target):
+        h = pts @ up
+        horiz = np.linalg.norm((pts - target) - np.outer(h - target @ up, up), axis=1)
+        low = (h < target @ up) & (horiz < 0.6 * scale)
+        if low.sum() < 20:
+            tried.append("too few points below the aim point")
+            continue
+        level = _foot_level(h[low], settings.foot_bin * scale, max(settings.foot_points, settings.foot_share * low.sum()))
+        plane = SupportPlane(up, -level)
+        if plane.height(target) <= 0 or np.median(plane.height(centers)) <= 0:
+            tried.append("the cameras are not above it")
+            continue
+        model, pixels = fit_plain_table(images, cams, plane, settings)
+        tried.append(model.reason)
+        if model.plain and (best is None or np.median(model.explained) > np.median(best[0].explained)):
+            best = (model, pixels)
+    if best is None:
+        return None, {"plain": False, "reason": "no plain table shaded by the flash: " + "; ".join(tried)}
+    model, pixels = best
+    return pixels, {**model.summary(), "reason": f"a plain table under the object: {model.reason}"}
+
+
+def object_mask(image: np.ndarray, table: np.ndarray, settings: PlainSettings = PlainSettings()
+                ) -> tuple[np.ndarray, dict]:
+    """The object's mask in a view of it on a plain table: what is neither the table
+    (``table``: its pixels at the working size, from :func:`fit_plain_table`) nor the unlit
+    background beyond it (:func:`recon.masks.evidence.unlit`; a flash's shadow on the table is as
+    dark and goes with it), at the image's size. The flash-falloff mask cannot be used there: the
+    lit table near the camera is often brighter than the object.
+
+    The table's pixels are closed first (sensor and JPEG noise leave single pixels unexplained);
+    the band within 3 px of both the table and the dark background (the table's far edge) goes
+    with them; what remains is opened by ``open_px`` (specks of the table), and
+    of it only the components holding at least 2 % are kept; holes the table's model opened
+    inside the object (a patch of its own colour and brightness) are filled when smaller than
+    1 % of it, while a real opening (a handle) shows more table than that. Returns the mask and
+    ``plain_table_px`` (the share of the image the table's pixels cover)."""
+    import cv2
+    from scipy import ndimage
+
+    from recon.masks.evidence import unlit
+
+    h, w = image.shape[:2]
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * settings.close_px + 1, 2 * settings.close_px + 1))
+    t = cv2.morphologyEx(table.astype(np.uint8), cv2.MORPH_CLOSE, k)
+    t = cv2.resize(t, (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
+    dark = unlit(image, t, settings.unlit_fraction)
+    # the table's far edge: a band between the table and the dark background that neither takes
+    # (the pixels mix the two, and unlit's smoothing widens it)
+    k3 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))
+    edge = cv2.dilate(t.astype(np.uint8), k3).astype(bool) & cv2.dilate(dark.astype(np.uint8), k3).astype(bool)
+    out = ~t & ~dark & ~edge
+    if settings.open_px > 0:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * settings.open_px + 1, 2 * settings.open_px + 1))
+        out = cv2.morphologyEx(out.astype(np.uint8), cv2.MORPH_OPEN, k).astype(bool)
+    # the table's pixels stop short of the object's outline by the smoothing and the flatness window
+    # (about 1.5 px at the working size): the object's mask is shrunk by as much
+    shrink = int(round(1.5 * max(h, w) / max(table.shape)))
+    if shrink > 0:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * shrink + 1, 2 * shrink + 1))
+        out = cv2.erode(out.astype(np.uint8), k).astype(bool)
+    labels, n = ndimage.label(out)
+    if n > 1:
+        sizes = ndimage.sum_labels(out, labels, index=np.arange(1, n + 1))
+        out = np.isin(labels, 1 + np.flatnonzero(sizes >= 0.02 * sizes.sum()))
+    filled = ndimage.binary_fill_holes(out)
+    hole_labels, nh = ndimage.label(filled & ~out)
+    if nh:
+        sizes = ndimage.sum_labels(filled & ~out, hole_labels, index=np.arange(1, nh + 1))
+        out |= np.isin(hole_labels, 1 + np.flatnonzero(sizes < 0.01 * max(int(out.sum()), 1)))
+    return out, {"coverage": float(out.mean()), "plain_table_px": float(t.mean())}
+
+
+__all__ = ["PlainSettings", "PlainTable", "fit_plain_table", "object_mask", "plain_table"]
