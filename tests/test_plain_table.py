@@ -176,3 +176,31 @@ def test_masks_stage_takes_a_plain_table_out_of_the_flash_falloff_masks(tmp_path
     assert not plain_off["method"].startswith("flash_falloff_plain_table")
     off = [(read_mask(tmp_path / "off" / f"{c.stem}.png") > 0.5) for c in cams]
     assert np.median([(m & truth[c.stem]).sum() / (m | truth[c.stem]).sum() for m, c in zip(off, cams, strict=True)]) < 0.6
+
+
+def test_poses_stage_without_a_plane_in_the_points_uses_the_plain_table(tmp_path):
+    """After SfM (recon.poses.stage): no plane in the points, so the masks stage's masks (here the
+    whole lit image, as flash-falloff masks of a plain table are) would be kept; the plain table's
+    model replaces them with the ball's silhouettes, and no plane.json is written."""
+    from recon.io.images import write_mask
+    from recon.poses.stage import _support_plane_masks
+
+    cams = cameras()
+    (tmp_path / "undistorted" / "masks").mkdir(parents=True)
+    truth = {}
+    for c in cams:
+        img, ball = render(c)
+        write_exr(tmp_path / "undistorted" / f"{c.stem}.exr", img.astype(np.float32))
+        write_mask(tmp_path / "undistorted" / "masks" / f"{c.stem}.png", img.max(-1) > 0)
+        truth[c.stem] = ball
+    save_cameras(tmp_path / "cameras.json", cams)
+    pts = ball_points()
+    (tmp_path / "points.ply").write_text("ply\nformat ascii 1.0\nelement vertex %d\nproperty float x\nproperty float y\n"
+                                         "property float z\nend_header\n" % len(pts)
+                                         + "".join(f"{x} {y} {z}\n" for x, y, z in pts))
+    info = _support_plane_masks(tmp_path, None)
+    assert not info["found"] and info["plain_table"]["plain"], info
+    assert not (tmp_path / "plane.json").exists()
+    ious = [((m := read_mask(tmp_path / "undistorted" / "masks" / f"{c.stem}.png") > 0.5) & truth[c.stem]).sum()
+            / (m | truth[c.stem]).sum() for c in cams]
+    assert min(ious) > 0.85 and np.median(ious) > 0.9, ious

@@ -494,7 +494,8 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
     if plane is None:
         log.info("no support plane in the SfM points (%s): the masks stage's masks are kept, made consistent "
                  "across the views", info["reason"])
-        return {**{k: v for k, v in info.items() if k in ("found", "reason")},
+        plain = _plain_table_masks(cams, tmp, und_masks, given or set())
+        return {**{k: v for k, v in info.items() if k in ("found", "reason")}, "plain_table": plain,
                 "consistent": _consistent_falloff_masks(cams, und_masks, given or set(), tmp / "points.ply")}
     from recon.masks.tabletop import SegmentError
 
@@ -541,6 +542,45 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
 # cameras.json of SfM: the object frame's z is up (the photos' up as displayed, or the table's
 # normal), which the export stands on +Y whatever way each photo's pixels are stored
 FRAME_UP = {"up": [0.0, 0.0, 1.0]}
+
+
+def _plain_table_masks(cams: CameraSet, tmp: Path, und_masks: Path, given: set[str]) -> dict:
+    """No support plane in the points, but perhaps a plain table (:mod:`recon.masks.plain`): SfM
+    finds almost no points on a plain desk, and the masks stage's flash-falloff masks then hold
+    the lit table with the object. When the undistorted views show a plain table shaded by the
+    flash, each view's mask (but the capture's own) becomes what is neither that table nor the
+    dark background. The object stays in the void (no plane.json: the table's height is not known
+    well enough to stand it on). Returns the model's summary (``plain``, ``reason``, ...)."""
+    from recon.io.images import read_exr, write_mask
+    from recon.masks.evidence import resized, working_cameras
+    from recon.masks.plain import PlainSettings, object_mask, plain_table
+
+    settings = PlainSettings()
+    paths = {c.stem: tmp / "undistorted" / f"{c.stem}.exr" for c in cams}
+    if all(c.stem in given for c in cams) or not all(p.is_file() for p in paths.values()):
+        return {"plain": False, "reason": "every view's mask is given, or a view is missing"}
+    small = [resized(read_exr(paths[c.stem]), (w.width, w.height))
+             for c, w in zip(cams, working_cameras(cams, settings.work_size), strict=True)]
+    table, info = plain_table(read_points_ply(tmp / "points.ply"), small, cams, settings)
+    del small
+    if table is None:
+        return info
+    und_masks.mkdir(parents=True, exist_ok=True)
+    empty = []
+    for c, t in zip(cams, table, strict=True):
+        if c.stem in given:
+            continue
+        m, _ = object_mask(read_exr(paths[c.stem]), t, settings)
+        if not m.any():
+            empty.append(c.stem)
+            continue
+        write_mask(und_masks / f"{c.stem}.png", m)
+    log.warning("%s; SfM found too few points on it to fit its plane, so each view's mask is what is neither that "
+                "table nor the dark background, and the object is reconstructed as in the void: its base is not "
+                "seen (a textured cloth or the printed mat under the object gives the plane and the base)%s",
+                info["reason"], f"; views left with their flash-falloff masks (all table): {', '.join(empty)}"
+                if empty else "")
+    return {**info, "views_left": empty}
 
 
 def _consistent_falloff_masks(cams: CameraSet, und_masks: Path, given: set[str], points_ply: Path | None = None
