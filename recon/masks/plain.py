@@ -13,11 +13,12 @@ tone curve, imperfectly undone by linearize, scales it). No texture enters it.
 
 :func:`fit_plain_table` fits that model over a ring of the plane around the object's foot and
 says whether the table is plain: the model explains most of the ring's pixels to a few percent
-and the table's chromaticity to 0.05. A wooden table is not plain (its albedo varies by a
-factor of several: 7-25 % of its ring explained on the family's captures, 51 % on the weakly
-textured one, against 60-79 % on a plain one). :func:`plain_table` is what the masks use when the
-sparse points give no plane: the plain table's pixels in every view, to take out of the
-flash-falloff masks.
+and the table's chromaticity to 0.05, with a residual flat in a 3 x 3 window. A wooden table is
+not plain: its albedo varies by a factor of several (5-19 % of the ring explained on seven
+tabletop captures of docs/masks.md, 43 % on glaze-torus's weakly textured table; on a plain desk
+52 %, 63 % with the true plane; docs/masks.md, "A plain table"). :func:`plain_table` is what the
+masks use when the sparse points give no plane: the plain table's pixels in every view, and
+:func:`object_mask` what is neither that table nor the dark background.
 """
 
 from __future__ import annotations
