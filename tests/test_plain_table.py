@@ -6,6 +6,7 @@ flash at each camera (cos / r^2), in linear units. The plane is plain (one albed
 curve is meant.
 """
 
+import functools
 import json
 
 import numpy as np
@@ -36,6 +37,11 @@ def cameras(n=12, width=160, height=120, distance=3.2):
     return CameraSet(tuple(frames), light_known=False)
 
 
+@functools.lru_cache(maxsize=2)
+def _wood(table_half):
+    return table_texture(512, table_half, seed=4)
+
+
 def render(cam, table="plain", power=1.0, table_half=4.0):
     """(H, W, 3) linear image and the ball's (H, W) true mask."""
     j, i = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
@@ -61,7 +67,7 @@ def render(cam, table="plain", power=1.0, table_half=4.0):
     if table == "plain":
         albedo = np.broadcast_to(TABLE_RGB, P.shape)
     elif table == "wood":
-        tex = table_texture(512, table_half, seed=4)
+        tex = _wood(table_half)
         u = np.clip(((P[..., 0] + table_half) / (2 * table_half) * 512).astype(int), 0, 511)
         v = np.clip(((table_half - P[..., 1]) / (2 * table_half) * 512).astype(int), 0, 511)
         albedo = tex[v, u]
