@@ -103,7 +103,15 @@ def _view_terms(image: np.ndarray, cam, plane: SupportPlane, foot: np.ndarray, s
         log_s = np.where(ok, np.log(np.where(ok, shade, 1.0)), 0.0)
         chroma = np.where(ok[..., None], rgb / np.where(ok, lum, 1.0)[..., None], 0.0)
     dist = np.linalg.norm(P - np.asarray(foot, float), axis=-1)
-    return log_l, log_s, chroma, dist, ok
+    # the lens's falloff (vignetting, which a JPEG's linearization does not undo): a function of the
+    # squared distance from the principal point, 1 in the corners
+    j, i = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+    rho2 = ((j - cam.K[0, 2]) ** 2 + (i - cam.K[1, 2]) ** 2) / (0.25 * (cam.width ** 2 + cam.height ** 2))
+    # the tone curve's bend (a phone's shoulder compresses the bright table near the camera): the
+    # square of the log shading about its middle, so that the exponent stays the slope there
+    centred = np.where(ok, log_s - np.median(log_s[ok]) if ok.any() else 0.0, 0.0)
+    shading = np.stack([log_s, centred * centred, rho2, rho2 * rho2], -1)
+    return log_l, shading, chroma, dist, ok
 
 
 def fit_plain_table(images: list[np.ndarray], cams: CameraSet, plane: SupportPlane,
@@ -126,52 +134,67 @@ def fit_plain_table(images: list[np.ndarray], cams: CameraSet, plane: SupportPla
     if sum(int(r.sum()) for r in rings) < 100 * max(n, 1):
         empty.reason = "the views see too little of the plane around the object"
         return empty, [np.zeros(t[0].shape, bool) for t in terms]
-    # the exponent: per view a robust line through (log shading, log luminance), then their median
-    slopes, gains = [], np.zeros(n)
-    for (log_l, log_s, _, _, _), ring in zip(terms, rings, strict=True):
-        sel = ring
-        if sel.sum() < 100:
+    # the exponent, the tone curve's bend and the lens's falloff: per view a robust fit of log
+    # luminance to (log shading, its square, rho^2, rho^4), then their medians (one lens, one tone
+    # curve)
+    coefs = []
+    for (log_l, X, _, _, _), ring in zip(terms, rings, strict=True):
+        if ring.sum() < 100:
             continue
-        x, y = log_s[sel], log_l[sel]
-        keep, b = np.ones(len(x), bool), None
-        for _ in range(4):  # the object and its shadow in the ring are outliers of the table's line
-            if keep.sum() < 50 or np.ptp(x[keep]) < 1e-6:
+        x, y = X[ring], log_l[ring]
+        A = np.concatenate([np.ones((len(x), 1)), x], 1)
+        keep, c = np.ones(len(x), bool), None
+        for _ in range(4):  # the object and its shadow in the ring are outliers of the table's fit
+            if keep.sum() < 50 or np.ptp(x[keep, 0]) < 1e-6:
                 break
-            b, a = np.polyfit(x[keep], y[keep], 1)
-            r = y - (a + b * x)
+            c, *_ = np.linalg.lstsq(A[keep], y[keep], rcond=None)
+            r = y - A @ c
             keep = np.abs(r - np.median(r[keep])) < 2.5 * settings.tolerance
-        if b is not None:
-            slopes.append(float(b))
-    if not slopes:
-        empty.reason = "no view's ring of the plane fits a line"
+        if c is not None and np.all(np.isfinite(c)):
+            coefs.append(c[1:])
+    if not coefs:
+        empty.reason = "no view's ring of the plane fits the model"
         return empty, [np.zeros(t[0].shape, bool) for t in terms]
-    slope = float(np.median(slopes))
-    # the gains with the exponent shared, the table's chromaticity from the pixels the model keeps
-    kept_chroma = []
-    for k, ((log_l, log_s, chroma, _, _), ring) in enumerate(zip(terms, rings, strict=True)):
-        sel = ring
-        if sel.sum() < 100:
+    shared = np.median(np.array(coefs), axis=0)  # slope, bend, falloff rho^2, rho^4
+    slope = float(shared[0])
+    # per view the gain g and the ambient light a of B = g S + a, S = the shared shading and falloff
+    # (ambient light, a lamp in the room, lifts the far table where the flash is weak: additive, not
+    # a factor), robustly in the linear domain; then the table's chromaticity (white balance varies)
+    gains, ambient, chromas = np.zeros(n), np.zeros(n), np.full((n, 3), np.nan)
+    for k, ((log_l, X, chroma, _, _), ring) in enumerate(zip(terms, rings, strict=True)):
+        if ring.sum() < 100:
             continue
-        r = log_l[sel] - slope * log_s[sel]
-        gains[k] = float(np.median(r))
-        for _ in range(3):
-            close = np.abs(r - gains[k]) < settings.tolerance
+        S = np.exp(X[ring] @ shared)
+        B = np.exp(log_l[ring])
+        g, a = float(np.median(B / S)), 0.0
+        for _ in range(4):
+            r = np.log(B) - np.log(np.maximum(g * S + a, 1e-30))
+            close = np.abs(r - np.median(r)) < 1.5 * settings.tolerance
             if close.sum() < 50:
                 break
-            gains[k] = float(np.median(r[close]))
-        close = np.abs(r - gains[k]) < settings.tolerance
+            (g_new, a_new), *_ = np.linalg.lstsq(np.stack([S[close], np.ones(close.sum())], 1) / B[close, None],
+                                                 np.ones(close.sum()), rcond=None)  # relative errors
+            if not (g_new > 0 and np.isfinite(a_new)):
+                break
+            g, a = float(g_new), float(max(a_new, 0.0))
+        gains[k], ambient[k] = np.log(g), a
+        r = np.log(B) - np.log(np.maximum(g * S + a, 1e-30))
+        close = np.abs(r) < settings.tolerance
         if close.sum() >= 50:
-            kept_chroma.append(np.median(chroma[sel][close], axis=0))
-    table_chroma = np.median(kept_chroma, axis=0) if kept_chroma else np.ones(3)
+            chromas[k] = np.median(chroma[ring][close], axis=0)
+    seen = np.isfinite(chromas).all(1)
+    table_chroma = np.median(chromas[seen], axis=0) if seen.any() else np.ones(3)
+    chromas[~seen] = table_chroma
     explained, pixels = np.zeros(n), []
-    for k, ((log_l, log_s, chroma, _, ok), ring) in enumerate(zip(terms, rings, strict=True)):
-        res = np.where(ok, log_l - slope * log_s - gains[k], 0.0)
+    for k, ((log_l, X, chroma, _, ok), ring) in enumerate(zip(terms, rings, strict=True)):
+        model_b = np.exp(gains[k] + X @ shared) + ambient[k]
+        res = np.where(ok, log_l - np.log(np.maximum(model_b, 1e-30)), 0.0)
         # a plain table has no texture: its residual is flat in a small window (wood grain, a
         # pattern or the object's outline is not)
         mean = cv2.blur(res, (3, 3))
         flat = np.sqrt(np.maximum(cv2.blur(res * res, (3, 3)) - mean * mean, 0.0)) < settings.max_texture
         fits = ok & flat & (np.abs(res) < settings.tolerance) \
-            & (np.abs(chroma - table_chroma).max(-1) < settings.chroma_tolerance)
+            & (np.abs(chroma - chromas[k]).max(-1) < settings.chroma_tolerance)
         explained[k] = float(fits[ring].mean()) if ring.sum() >= 100 else 0.0
         pixels.append(fits)
     med = float(np.median(explained))
@@ -243,8 +266,9 @@ def object_mask(image: np.ndarray, table: np.ndarray, settings: PlainSettings = 
                 ) -> tuple[np.ndarray, dict]:
     """The object's mask in a view of it on a plain table: what is neither the table
     (``table``: its pixels at the working size, from :func:`fit_plain_table`) nor the unlit
-    background beyond it (:func:`recon.masks.evidence.unlit`; a flash's shadow on the table is as
-    dark and goes with it), at the image's size. The flash-falloff mask cannot be used there: the
+    background beyond it (:func:`recon.masks.evidence.unlit`, where it reaches the image's border
+    or the table: a flash's shadow on the table goes with it, a dark spot inside the object
+    stays), at the image's size. The flash-falloff mask cannot be used there: the
     lit table near the camera is often brighter than the object.
 
     The table's pixels are closed first (sensor and JPEG noise leave single pixels unexplained);
@@ -264,6 +288,16 @@ def object_mask(image: np.ndarray, table: np.ndarray, settings: PlainSettings = 
     t = cv2.morphologyEx(table.astype(np.uint8), cv2.MORPH_CLOSE, k)
     t = cv2.resize(t, (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
     dark = unlit(image, t, settings.unlit_fraction)
+    # dark is background where it reaches the image's border (the room beyond the table) or the
+    # table (the flash's shadow on it); a dark patch inside the object (a dark glaze's spots) is
+    # the object
+    labels, n = ndimage.label(dark)
+    if n:
+        border = np.zeros_like(dark)
+        border[0], border[-1], border[:, 0], border[:, -1] = True, True, True, True
+        near_table = cv2.dilate(t.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        outside = np.unique(labels[(border | near_table) & dark])
+        dark = np.isin(labels, outside[outside > 0])
     # the table's far edge: a band between the table and the dark background that neither takes
     # (the pixels mix the two, and unlit's smoothing widens it)
     k3 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))
