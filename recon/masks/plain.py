@@ -134,70 +134,103 @@ def fit_plain_table(images: list[np.ndarray], cams: CameraSet, plane: SupportPla
     if sum(int(r.sum()) for r in rings) < 100 * max(n, 1):
         empty.reason = "the views see too little of the plane around the object"
         return empty, [np.zeros(t[0].shape, bool) for t in terms]
-    # the exponent, the tone curve's bend and the lens's falloff: per view a robust fit of log
-    # luminance to (log shading, its square, rho^2, rho^4), then their medians (one lens, one tone
-    # curve)
-    coefs = []
-    for (log_l, X, _, _, _), ring in zip(terms, rings, strict=True):
-        if ring.sum() < 100:
-            continue
-        x, y = X[ring], log_l[ring]
-        A = np.concatenate([np.ones((len(x), 1)), x], 1)
-        keep, c = np.ones(len(x), bool), None
-        for _ in range(4):  # the object and its shadow in the ring are outliers of the table's fit
-            if keep.sum() < 50 or np.ptp(x[keep, 0]) < 1e-6:
-                break
-            c, *_ = np.linalg.lstsq(A[keep], y[keep], rcond=None)
-            r = y - A @ c
-            keep = np.abs(r - np.median(r[keep])) < 2.5 * settings.tolerance
-        if c is not None and np.all(np.isfinite(c)):
-            coefs.append(c[1:])
-    if not coefs:
-        empty.reason = "no view's ring of the plane fits the model"
-        return empty, [np.zeros(t[0].shape, bool) for t in terms]
-    shared = np.median(np.array(coefs), axis=0)  # slope, bend, falloff rho^2, rho^4
-    slope = float(shared[0])
-    # per view the gain g and the ambient light a of B = g S + a, S = the shared shading and falloff
-    # (ambient light, a lamp in the room, lifts the far table where the flash is weak: additive, not
-    # a factor), robustly in the linear domain; then the table's chromaticity (white balance varies)
-    gains, ambient, chromas = np.zeros(n), np.zeros(n), np.full((n, 3), np.nan)
-    for k, ((log_l, X, chroma, _, _), ring) in enumerate(zip(terms, rings, strict=True)):
-        if ring.sum() < 100:
-            continue
-        S = np.exp(X[ring] @ shared)
-        B = np.exp(log_l[ring])
-        g, a = float(np.median(B / S)), 0.0
-        for _ in range(4):
+    def solve(columns, joint=True):
+        """The model with the shared terms ``columns`` (indices into the view terms' last axis),
+        fitted over all the views at once (``joint``) or view by view, then their medians."""
+        # the exponent, the tone curve's bend and the lens's falloff, shared by the views (one tone
+        # curve, one lens), with a gain per view: one robust least-squares fit over the rings of all the
+        # views (a term fitted view by view is confounded with the others over one view's ring)
+        rows_x, rows_y, rows_k = [], [], []
+        for k, ((log_l, X, _, _, _), ring) in enumerate(zip(terms, rings, strict=True)):
+            if ring.sum() < 100:
+                continue
+            pick = np.linspace(0, ring.sum() - 1, min(int(ring.sum()), 4000)).astype(int)  # an even subsample
+            rows_x.append(X[ring][pick])
+            rows_y.append(log_l[ring][pick])
+            rows_k.append(np.full(len(pick), k))
+        x, y, view = np.concatenate(rows_x)[:, columns], np.concatenate(rows_y), np.concatenate(rows_k)
+        used = np.unique(view)
+
+        def robust(A, y, least):
+            keep, coef = np.ones(len(y), bool), None
+            for _ in range(5):  # the object and its shadow in the rings are outliers of the table's fit
+                if keep.sum() < least:
+                    break
+                coef, *_ = np.linalg.lstsq(A[keep], y[keep], rcond=None)
+                keep = np.abs(y - A @ coef) < 2.5 * settings.tolerance
+            return coef
+
+        if joint:
+            coef = robust(np.concatenate([(view[:, None] == used[None, :]).astype(float), x], 1), y, 50 * len(used))
+            coef = None if coef is None else coef[len(used):]
+        else:  # view by view, then the median of each term
+            per = [robust(np.concatenate([np.ones((int((view == k).sum()), 1)), x[view == k]], 1), y[view == k], 50)
+                   for k in used]
+            per = [c[1:] for c in per if c is not None]
+            coef = np.median(np.array(per), axis=0) if per else None
+        if coef is None or not np.all(np.isfinite(coef)):
+            return None
+        shared = np.zeros(terms[0][1].shape[-1])
+        shared[columns] = coef  # slope, bend, falloff rho^2, rho^4
+        slope = float(shared[0])
+        # per view the gain g and the ambient light a of B = g S + a, S = the shared shading and falloff
+        # (ambient light, a lamp in the room, lifts the far table where the flash is weak: additive, not
+        # a factor), robustly in the linear domain; then the table's chromaticity (white balance varies)
+        gains, ambient, chromas = np.zeros(n), np.zeros(n), np.full((n, 3), np.nan)
+        for k, ((log_l, X, chroma, _, _), ring) in enumerate(zip(terms, rings, strict=True)):
+            if ring.sum() < 100:
+                continue
+            S = np.exp(X[ring] @ shared)
+            B = np.exp(log_l[ring])
+            g, a = float(np.median(B / S)), 0.0
+            for _ in range(4):
+                r = np.log(B) - np.log(np.maximum(g * S + a, 1e-30))
+                close = np.abs(r - np.median(r)) < 1.5 * settings.tolerance
+                if close.sum() < 50:
+                    break
+                (g_new, a_new), *_ = np.linalg.lstsq(np.stack([S[close], np.ones(close.sum())], 1) / B[close, None],
+                                                     np.ones(close.sum()), rcond=None)  # relative errors
+                if not (g_new > 0 and np.isfinite(a_new)):
+                    break
+                g, a = float(g_new), float(max(a_new, 0.0))
+            gains[k], ambient[k] = np.log(g), a
             r = np.log(B) - np.log(np.maximum(g * S + a, 1e-30))
-            close = np.abs(r - np.median(r)) < 1.5 * settings.tolerance
-            if close.sum() < 50:
-                break
-            (g_new, a_new), *_ = np.linalg.lstsq(np.stack([S[close], np.ones(close.sum())], 1) / B[close, None],
-                                                 np.ones(close.sum()), rcond=None)  # relative errors
-            if not (g_new > 0 and np.isfinite(a_new)):
-                break
-            g, a = float(g_new), float(max(a_new, 0.0))
-        gains[k], ambient[k] = np.log(g), a
-        r = np.log(B) - np.log(np.maximum(g * S + a, 1e-30))
-        close = np.abs(r) < settings.tolerance
-        if close.sum() >= 50:
-            chromas[k] = np.median(chroma[ring][close], axis=0)
-    seen = np.isfinite(chromas).all(1)
-    table_chroma = np.median(chromas[seen], axis=0) if seen.any() else np.ones(3)
-    chromas[~seen] = table_chroma
-    explained, pixels = np.zeros(n), []
-    for k, ((log_l, X, chroma, _, ok), ring) in enumerate(zip(terms, rings, strict=True)):
-        model_b = np.exp(gains[k] + X @ shared) + ambient[k]
-        res = np.where(ok, log_l - np.log(np.maximum(model_b, 1e-30)), 0.0)
-        # a plain table has no texture: its residual is flat in a small window (wood grain, a
-        # pattern or the object's outline is not)
-        mean = cv2.blur(res, (3, 3))
-        flat = np.sqrt(np.maximum(cv2.blur(res * res, (3, 3)) - mean * mean, 0.0)) < settings.max_texture
-        fits = ok & flat & (np.abs(res) < settings.tolerance) \
-            & (np.abs(chroma - chromas[k]).max(-1) < settings.chroma_tolerance)
-        explained[k] = float(fits[ring].mean()) if ring.sum() >= 100 else 0.0
-        pixels.append(fits)
-    med = float(np.median(explained))
+            close = np.abs(r) < settings.tolerance
+            if close.sum() >= 50:
+                chromas[k] = np.median(chroma[ring][close], axis=0)
+        seen = np.isfinite(chromas).all(1)
+        table_chroma = np.median(chromas[seen], axis=0) if seen.any() else np.ones(3)
+        chromas[~seen] = table_chroma
+        explained, pixels, whole = np.zeros(n), [], []
+        for k, ((log_l, X, chroma, _, ok), ring) in enumerate(zip(terms, rings, strict=True)):
+            model_b = np.exp(gains[k] + X @ shared) + ambient[k]
+            res = np.where(ok, log_l - np.log(np.maximum(model_b, 1e-30)), 0.0)
+            # a plain table has no texture: its residual is flat in a small window (wood grain, a
+            # pattern or the object's outline is not)
+            mean = cv2.blur(res, (3, 3))
+            flat = np.sqrt(np.maximum(cv2.blur(res * res, (3, 3)) - mean * mean, 0.0)) < settings.max_texture
+            fits = ok & flat & (np.abs(res) < settings.tolerance) \
+                & (np.abs(chroma - chromas[k]).max(-1) < settings.chroma_tolerance)
+            explained[k] = float(fits[ring].mean()) if ring.sum() >= 100 else 0.0
+            whole.append(float(fits[ok].mean()) if ok.any() else 0.0)
+            pixels.append(fits)
+        return float(np.median(explained)), slope, gains, explained, table_chroma, pixels, float(np.median(whole))
+
+    # the plain model (the flash's shading alone) and the full one (the tone curve's bend, the lens's
+    # falloff), fitted jointly or view by view: the one that explains most of the rings. Measured
+    # (docs/masks.md, "A plain table"): on a blob on a plain desk without vignetting the full model
+    # also bends to the object, which fills much of the rings (38 % explained, the plain one 56 %);
+    # on phone photos with vignetting the plain model explains 23 %, and the full one fitted view by
+    # view does best
+    fits = [f for f in (solve([0]), solve([0, 1, 2, 3]), solve([0, 1, 2, 3], joint=False)) if f is not None]
+    log.debug("plain table: explained in the rings %s, in the views %s, exponents %s", [round(f[0], 3) for f in fits],
+              [round(f[6], 3) for f in fits], [round(f[1], 3) for f in fits])
+    if not fits:
+        empty.reason = "no fit of the plane's shading over the views' rings"
+        return empty, [np.zeros(t[0].shape, bool) for t in terms]
+    # chosen by what it explains of the whole plane each view sees (the rings decide only whether the
+    # table is plain): the table near the camera in the steep views lies outside the rings
+    med, slope, gains, explained, table_chroma, pixels, _ = max(fits, key=lambda f: f[6])
     lo_s, hi_s = settings.slope
     plain = bool(med >= settings.min_explained and lo_s <= slope <= hi_s)
     reason = (f"the flash's shading of the plane explains {100 * med:.0f}% of the ring's lit pixels in the median "
