@@ -45,7 +45,8 @@ class PlainSettings:
     ring: tuple = (0.3, 0.8)  # the model is fitted on plane points this far from the object's foot
     tolerance: float = 0.1  # |log residual| of a plain table's pixel (a 10 % brightness error)
     chroma_tolerance: float = 0.05  # ... and the largest difference of its chromaticity from the table's ...
-    max_texture: float = 0.04  # ... and the std of its residual in a 3 x 3 window
+    max_texture: float = 0.04  # ... and the std of its residual in a window of this radius (px at the working size)
+    flat_radius: int = 2
     min_explained: float = 0.45  # the table is plain when the model explains this share of the ring's lit pixels
     # in the median view (the object hides part of the ring, its shadow another)
     slope: tuple = (0.5, 8.0)  # plausible exponents b of the shading (1: linear photos)
@@ -56,9 +57,11 @@ class PlainSettings:
     foot_points: int = 10
     foot_share: float = 0.005
 
-    close_px: int = 2  # object_mask: the table's pixels closed by this (px at the working size) ...
+    close_px: int = 1  # object_mask: the table's pixels closed by this (px at the working size) ...
     open_px: int = 2  # ... the rest opened by this (px at the image's size) ...
-    unlit_fraction: float = 0.1  # ... and the background darker than this share of the lit table left out
+    unlit_fraction: float = 0.1  # ... and the background darker than this share of the lit table left out, with
+    edge_px: int = 14  # ... the band this close to both the table and the dark (the table's far edge, where its
+    # grazing gloss leaves the model)
 
     def __post_init__(self):
         lo, hi = self.ring
@@ -207,8 +210,9 @@ def fit_plain_table(images: list[np.ndarray], cams: CameraSet, plane: SupportPla
             res = np.where(ok, log_l - np.log(np.maximum(model_b, 1e-30)), 0.0)
             # a plain table has no texture: its residual is flat in a small window (wood grain, a
             # pattern or the object's outline is not)
-            mean = cv2.blur(res, (3, 3))
-            flat = np.sqrt(np.maximum(cv2.blur(res * res, (3, 3)) - mean * mean, 0.0)) < settings.max_texture
+            w = 2 * settings.flat_radius + 1
+            mean = cv2.blur(res, (w, w))
+            flat = np.sqrt(np.maximum(cv2.blur(res * res, (w, w)) - mean * mean, 0.0)) < settings.max_texture
             fits = ok & flat & (np.abs(res) < settings.tolerance) \
                 & (np.abs(chroma - chromas[k]).max(-1) < settings.chroma_tolerance)
             explained[k] = float(fits[ring].mean()) if ring.sum() >= 100 else 0.0
@@ -305,8 +309,8 @@ def object_mask(image: np.ndarray, table: np.ndarray, settings: PlainSettings = 
     lit table near the camera is often brighter than the object.
 
     The table's pixels are closed first (sensor and JPEG noise leave single pixels unexplained);
-    the band within 3 px of both the table and the dark background (the table's far edge) goes
-    with them; what remains is opened by ``open_px`` (specks of the table), and
+    the band within ``edge_px`` of both the table and the dark background (the table's far edge,
+    whose gloss at grazing angles the model does not hold) goes with them; what remains is opened by ``open_px`` (specks of the table), and
     of it only the components holding at least 2 % are kept; holes the table's model opened
     inside the object (a patch of its own colour and brightness) are filled when smaller than
     1 % of it, while a real opening (a handle) shows more table than that. Returns the mask and
@@ -333,7 +337,7 @@ def object_mask(image: np.ndarray, table: np.ndarray, settings: PlainSettings = 
         dark = np.isin(labels, outside[outside > 0])
     # the table's far edge: a band between the table and the dark background that neither takes
     # (the pixels mix the two, and unlit's smoothing widens it)
-    k3 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))
+    k3 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * settings.edge_px + 1, 2 * settings.edge_px + 1))
     edge = cv2.dilate(t.astype(np.uint8), k3).astype(bool) & cv2.dilate(dark.astype(np.uint8), k3).astype(bool)
     out = ~t & ~dark & ~edge
     if settings.open_px > 0:
@@ -341,7 +345,7 @@ def object_mask(image: np.ndarray, table: np.ndarray, settings: PlainSettings = 
         out = cv2.morphologyEx(out.astype(np.uint8), cv2.MORPH_OPEN, k).astype(bool)
     # the table's pixels stop short of the object's outline by the smoothing and the flatness window
     # (about 1.5 px at the working size): the object's mask is shrunk by as much
-    shrink = int(round(1.5 * max(h, w) / max(table.shape)))
+    shrink = int(round((settings.flat_radius + 0.5) * max(h, w) / max(table.shape)))
     if shrink > 0:
         k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * shrink + 1, 2 * shrink + 1))
         out = cv2.erode(out.astype(np.uint8), k).astype(bool)
