@@ -7,16 +7,18 @@ became a slab of table: silhouette IoU 0.37 with its masks, genus 8). The flash 
 the table instead. It sits at the camera, so a plane point at distance r from it, whose normal
 makes the angle theta with the ray, receives ``cos(theta) / r^2 = h / r^3`` (h: the camera's
 height above the plane; :func:`recon.masks.geometry.flash_shading`). A plain table of one albedo
-therefore shows, in each view, ``log B = a + b log(h / r^3)``: one gain per view (exposure, the
-flash's power, the albedo) and an exponent b shared by the views (1 in linear photos; a phone's
-tone curve, imperfectly undone by linearize, scales it). No texture enters it.
+therefore shows, in each view, ``B = g (h / r^3)^b``: one gain per view (exposure, the flash's
+power, the albedo) and an exponent b shared by the views (1 in linear photos; a phone's tone
+curve, imperfectly undone by linearize, scales it). A phone's photos add the lens's falloff, a
+bend of the tone curve, ambient light (additive) and white balance per view; the model takes
+them (:func:`fit_plain_table`). No texture enters it.
 
 :func:`fit_plain_table` fits that model over a ring of the plane around the object's foot and
 says whether the table is plain: the model explains most of the ring's pixels to a few percent
-and the table's chromaticity to 0.05, with a residual flat in a 3 x 3 window. A wooden table is
-not plain: its albedo varies by a factor of several (5-19 % of the ring explained on seven
-tabletop captures of docs/masks.md, 43 % on glaze-torus's weakly textured table; on a plain desk
-52 %, 63 % with the true plane; docs/masks.md, "A plain table"). :func:`plain_table` is what the
+and the table's chromaticity to 0.05, with a residual flat over 5 x 5 pixels. A wooden table is
+not plain: its albedo varies by a factor of several (5-15 % of the ring explained on eight
+tabletop captures of docs/masks.md, 31 % on glaze-torus's weakly textured table; on plain desks
+56 % and 70 %; docs/masks.md, "A plain table"). :func:`plain_table` is what the
 masks use when the sparse points give no plane: the plain table's pixels in every view, and
 :func:`object_mask` what is neither that table nor the dark background.
 """
@@ -119,8 +121,13 @@ def _view_terms(image: np.ndarray, cam, plane: SupportPlane, foot: np.ndarray, s
 
 def fit_plain_table(images: list[np.ndarray], cams: CameraSet, plane: SupportPlane,
                     settings: PlainSettings = PlainSettings()) -> tuple[PlainTable, list[np.ndarray]]:
-    """Fit ``log B = gain_i + slope * log(h / r^3)`` on the ring of ``plane`` about the object's
-    foot in every view; return the model and, per view, the pixels the model explains
+    """Fit ``B_i = g_i S + a_i``, ``log S = slope log s + c (log s - m)^2 + d rho^2 + e rho^4`` (s the
+    flash's shading ``h / r^3`` of ``plane``, rho the distance from the principal point, m the
+    view's median log s) on the ring of the plane about the object's foot in every view: the
+    shared terms by three fits (the shading alone; all terms jointly; all terms view by view, then
+    their medians), the one that explains most of the plane the views see kept; the gain g_i,
+    the ambient a_i and the table's chromaticity per view. Return the model and, per view, the
+    pixels the model explains
     (``(H, W)`` bool at the working size of ``settings.work_size``: the plain table's pixels,
     anywhere on the plane)."""
     import cv2
