@@ -88,6 +88,27 @@ def ball_points(count=400, seed=0):
     return CENTER + RADIUS * v
 
 
+def stage_inputs(root, views, cams, lit_masks=False):
+    """The views as EXRs in ``views`` (with ``masks/``: the whole lit image, as flash-falloff
+    masks of a plain table are), ``root/cameras.json`` and ``root/points.ply`` (the ball's points
+    only, as SfM finds on a plain table); returns the true masks by stem."""
+    from recon.io.images import write_mask
+
+    (views / "masks").mkdir(parents=True, exist_ok=True)
+    truth = {}
+    for c in cams:
+        img, ball = render(c)
+        write_exr(views / f"{c.stem}.exr", img.astype(np.float32))
+        if lit_masks:
+            write_mask(views / "masks" / f"{c.stem}.png", img.max(-1) > 0)
+        truth[c.stem] = ball
+    save_cameras(root / "cameras.json", cams)
+    pts = ball_points()
+    (root / "points.ply").write_text("ply\nformat ascii 1.0\nelement vertex %d\nproperty float x\nproperty float y\n"
+                                     "property float z\nend_header\n" % len(pts) + "".join(f"{x} {y} {z}\n" for x, y, z in pts))
+    return truth
+
+
 @pytest.mark.parametrize("power", [1.0, 2.2])
 def test_a_plain_table_is_found_and_its_pixels_are_the_table(power):
     cams = cameras()
@@ -153,17 +174,7 @@ def test_masks_stage_takes_a_plain_table_out_of_the_flash_falloff_masks(tmp_path
     with the plain table's pixels taken out they are the ball's silhouettes."""
     cams = cameras()
     views = tmp_path / "views"
-    views.mkdir()
-    truth = {}
-    for c in cams:
-        img, ball = render(c)
-        write_exr(views / f"{c.stem}.exr", img.astype(np.float32))
-        truth[c.stem] = ball
-    save_cameras(tmp_path / "cameras.json", cams)
-    pts = ball_points()
-    (tmp_path / "points.ply").write_text("ply\nformat ascii 1.0\nelement vertex %d\nproperty float x\nproperty float y\n"
-                                         "property float z\nend_header\n" % len(pts)
-                                         + "".join(f"{x} {y} {z}\n" for x, y, z in pts))
+    truth = stage_inputs(tmp_path, views, cams)
     info = run_view_masks(views, tmp_path / "cameras.json", tmp_path / "masks", points=tmp_path / "points.ply")
     assert not info["plane"]["found"] and info["plane"]["plain_table"]["plain"]
     assert info["method"].startswith("flash_falloff_plain_table")
@@ -188,22 +199,10 @@ def test_poses_stage_without_a_plane_in_the_points_uses_the_plain_table(tmp_path
     """After SfM (recon.poses.stage): no plane in the points, so the masks stage's masks (here the
     whole lit image, as flash-falloff masks of a plain table are) would be kept; the plain table's
     model replaces them with the ball's silhouettes, and no plane.json is written."""
-    from recon.io.images import write_mask
     from recon.poses.stage import _support_plane_masks
 
     cams = cameras()
-    (tmp_path / "undistorted" / "masks").mkdir(parents=True)
-    truth = {}
-    for c in cams:
-        img, ball = render(c)
-        write_exr(tmp_path / "undistorted" / f"{c.stem}.exr", img.astype(np.float32))
-        write_mask(tmp_path / "undistorted" / "masks" / f"{c.stem}.png", img.max(-1) > 0)
-        truth[c.stem] = ball
-    save_cameras(tmp_path / "cameras.json", cams)
-    pts = ball_points()
-    (tmp_path / "points.ply").write_text("ply\nformat ascii 1.0\nelement vertex %d\nproperty float x\nproperty float y\n"
-                                         "property float z\nend_header\n" % len(pts)
-                                         + "".join(f"{x} {y} {z}\n" for x, y, z in pts))
+    truth = stage_inputs(tmp_path, tmp_path / "undistorted", cams, lit_masks=True)
     info = _support_plane_masks(tmp_path, None)
     assert not info["found"] and info["plain_table"]["plain"], info
     assert not (tmp_path / "plane.json").exists()
