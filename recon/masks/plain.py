@@ -26,6 +26,7 @@ masks use when the sparse points give no plane: the plain table's pixels in ever
 from __future__ import annotations
 
 import logging
+from collections.abc import Collection
 from dataclasses import dataclass
 
 import numpy as np
@@ -92,7 +93,7 @@ class PlainTable:
                 "chroma": [float(c) for c in self.chroma], "reason": self.reason}
 
 
-def _view_terms(image: np.ndarray, cam, plane: SupportPlane, foot: np.ndarray, settings: PlainSettings):
+def _view_terms(image: np.ndarray, cam, plane: SupportPlane, foot: np.ndarray):
     """Per pixel of ``cam`` (the working size): log luminance, log shading, chromaticity, the
     plane distance from ``foot`` and where the ray meets the plane in front of the camera."""
     import cv2
@@ -136,7 +137,7 @@ def fit_plain_table(images: list[np.ndarray], cams: CameraSet, plane: SupportPla
     target = aim_point(cams)
     scale = scene_scale(cams, target)
     foot = plane.project(target)
-    terms = [_view_terms(im, w, plane, foot, settings) for im, w in zip(images, wcams, strict=True)]
+    terms = [_view_terms(im, w, plane, foot) for im, w in zip(images, wcams, strict=True)]
     lo, hi = settings.ring[0] * scale, settings.ring[1] * scale
     rings = [ok & (dist >= lo) & (dist <= hi) for _, _, _, dist, ok in terms]
     n = len(terms)
@@ -368,4 +369,36 @@ def object_mask(image: np.ndarray, table: np.ndarray, settings: PlainSettings = 
     return out, {"coverage": float(out.mean()), "plain_table_px": float(t.mean())}
 
 
-__all__ = ["PlainSettings", "PlainTable", "fit_plain_table", "object_mask", "plain_table"]
+def plain_table_masks(points: np.ndarray, load, cams: CameraSet, skip: Collection[str] = (),
+                      settings: PlainSettings = PlainSettings()) -> tuple[dict[str, np.ndarray] | None, dict]:
+    """The masks of an object on a plain table, when the sparse points give no plane: per view
+    (but those in ``skip``: the capture's own masks) :func:`object_mask` of the table that
+    :func:`plain_table` finds; ``load(stem)`` gives a view's linear image. None when the photos
+    show no plain table. A view whose mask would be empty (every pixel the table or the dark) is
+    left out and named in ``views_left``: the caller keeps its flash-falloff mask. Each image is
+    read twice (at the working size for the model, then whole for its mask), so that the views
+    are never all held at full size."""
+    wcams = working_cameras(cams, settings.work_size)
+    small = [resized(load(c.stem), (w.width, w.height)) for c, w in zip(cams, wcams, strict=True)]
+    table, info = plain_table(points, small, cams, settings)
+    del small
+    if table is None:
+        return None, info
+    masks, empty = {}, []
+    for c, t in zip(cams, table, strict=True):
+        if c.stem in skip:
+            continue
+        m, _ = object_mask(load(c.stem), t, settings)
+        if m.any():
+            masks[c.stem] = m
+        else:
+            empty.append(c.stem)
+    log.warning("%s; too few of the sparse points lie on it to fit its plane, so each view's mask is what is neither "
+                "that table nor the dark background, and the object is reconstructed as in the void: its base is "
+                "not seen (a textured cloth or the printed mat under the object gives the plane and the base)%s",
+                info["reason"], f"; views left with their flash-falloff masks (all table): {', '.join(empty)}"
+                if empty else "")
+    return masks, {**info, "views_left": empty}
+
+
+__all__ = ["PlainSettings", "PlainTable", "fit_plain_table", "object_mask", "plain_table", "plain_table_masks"]

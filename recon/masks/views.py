@@ -27,7 +27,7 @@ from recon.masks.common import MaskError
 from recon.masks.consistent import ConsistentSettings, consistent_derived
 from recon.masks.falloff import MaskSettings, derive_mask
 from recon.masks.given import fit_given_mask
-from recon.masks.plain import PlainSettings, object_mask, plain_table
+from recon.masks.plain import PlainSettings, plain_table_masks
 from recon.masks.points import triangulate_points
 from recon.masks.tabletop import SegmentError, SegmentSettings, segment_tabletop
 from recon.support import fit_support_plane, save_plane
@@ -146,24 +146,17 @@ def run_view_masks(
         if len(given) < len(cams):
             log.info("no support plane (%s): masks from the flash falloff, as for an object in the void "
                      "(recon.masks)", plane_info.get("reason"))
-        table = None
+        plain = None
         if pts is not None and len(given) < len(cams):
-            table, plain_info = plain_table(pts, images, cams, plain_settings or PlainSettings())
-            plane_info["plain_table"] = plain_info
-            if table is not None:
-                log.warning("%s; SfM found too few points on it to fit its plane, so the object is reconstructed "
-                            "as in the void: its base is not seen (a textured cloth or printed mat under the "
-                            "object gives the plane and the base)", plain_info["reason"])
-        for i, (cam, img) in enumerate(zip(cams, images, strict=True)):
+            by_stem = {c.stem: im for c, im in zip(cams, images, strict=True)}
+            plain, plane_info["plain_table"] = plain_table_masks(pts, by_stem.__getitem__, cams, set(given),
+                                                                 plain_settings or PlainSettings())
+        for cam, img in zip(cams, images, strict=True):
             if cam.stem in given:
                 continue
-            if table is not None:
-                m, inf = object_mask(img, table[i], plain_settings or PlainSettings())
-                if not m.any():
-                    raise MaskError(f"no object found in {image_dir / cam.stem}.exr: every pixel is the plain table "
-                                    f"or the dark background (provide masks/{cam.stem}.png in the capture)")
-                masks[cam.stem] = m
-                views[cam.stem] = {"source": "derived_plain_table", **inf}
+            if plain is not None and cam.stem in plain:
+                masks[cam.stem] = plain[cam.stem]
+                views[cam.stem] = {"source": "derived_plain_table", "coverage": float(plain[cam.stem].mean())}
                 continue
             try:
                 m, inf = derive_mask(img, mask_settings)
@@ -172,7 +165,7 @@ def run_view_masks(
                                 f"masks/{cam.stem}.png in the capture)") from e
             masks[cam.stem] = m
             views[cam.stem] = {"source": "derived", **inf}
-        method = "flash_falloff" if table is None else "flash_falloff_plain_table"
+        method = "flash_falloff" if plain is None else "flash_falloff_plain_table"
         # every view's mask, given or derived, votes; only the derived ones change
         fixed, seg_info = consistent_derived({**masks, **given}, cams, set(given),
                                              consistent_settings or ConsistentSettings())

@@ -549,38 +549,22 @@ def _plain_table_masks(cams: CameraSet, tmp: Path, und_masks: Path, given: set[s
     finds almost no points on a plain desk, and the masks stage's flash-falloff masks then hold
     the lit table with the object. When the undistorted views show a plain table shaded by the
     flash, each view's mask (but the capture's own) becomes what is neither that table nor the
-    dark background. The object stays in the void (no plane.json: the table's height is not known
-    well enough to stand it on). Returns the model's summary (``plain``, ``reason``, ...)."""
+    dark background (:func:`recon.masks.plain.plain_table_masks`). The object stays in the void
+    (no plane.json: the table's height is not known well enough to stand it on). Returns the
+    model's summary (``plain``, ``reason``, ...)."""
     from recon.io.images import read_exr, write_mask
-    from recon.masks.evidence import resized, working_cameras
-    from recon.masks.plain import PlainSettings, object_mask, plain_table
+    from recon.masks.plain import plain_table_masks
 
-    settings = PlainSettings()
     paths = {c.stem: tmp / "undistorted" / f"{c.stem}.exr" for c in cams}
     if all(c.stem in given for c in cams) or not all(p.is_file() for p in paths.values()):
         return {"plain": False, "reason": "every view's mask is given, or a view is missing"}
-    small = [resized(read_exr(paths[c.stem]), (w.width, w.height))
-             for c, w in zip(cams, working_cameras(cams, settings.work_size), strict=True)]
-    table, info = plain_table(read_points_ply(tmp / "points.ply"), small, cams, settings)
-    del small
-    if table is None:
-        return info
-    und_masks.mkdir(parents=True, exist_ok=True)
-    empty = []
-    for c, t in zip(cams, table, strict=True):
-        if c.stem in given:
-            continue
-        m, _ = object_mask(read_exr(paths[c.stem]), t, settings)
-        if not m.any():
-            empty.append(c.stem)
-            continue
-        write_mask(und_masks / f"{c.stem}.png", m)
-    log.warning("%s; SfM found too few points on it to fit its plane, so each view's mask is what is neither that "
-                "table nor the dark background, and the object is reconstructed as in the void: its base is not "
-                "seen (a textured cloth or the printed mat under the object gives the plane and the base)%s",
-                info["reason"], f"; views left with their flash-falloff masks (all table): {', '.join(empty)}"
-                if empty else "")
-    return {**info, "views_left": empty}
+    masks, info = plain_table_masks(read_points_ply(tmp / "points.ply"), lambda stem: read_exr(paths[stem]), cams,
+                                    given)
+    if masks is not None:
+        und_masks.mkdir(parents=True, exist_ok=True)
+        for stem, m in masks.items():
+            write_mask(und_masks / f"{stem}.png", m)
+    return info
 
 
 def _consistent_falloff_masks(cams: CameraSet, und_masks: Path, given: set[str], points_ply: Path | None = None
