@@ -510,6 +510,7 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
         log.warning("a plane was found in the SfM points, but the tabletop masks failed, so the masks stage's "
                     "masks are kept (no support plane), made consistent across the views. %s", e)
         return {"found": False, "reason": f"tabletop masks failed: {str(e).splitlines()[0]}",
+                "plain_table": _plain_table_masks(cams, tmp, und_masks, given or set()),
                 "consistent": _consistent_falloff_masks(cams, und_masks, given or set(), tmp / "points.ply")}
     if not (tmp / "tabletop" / "plane.json").is_file():  # the same points, the same plane: not expected
         shutil.rmtree(tmp / "tabletop")
@@ -528,6 +529,7 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
                         "and are not used, the masks stage's masks are kept (no support plane), made consistent "
                         "across the views. Give masks/<stem>.png in the capture if these fail too", 100 * share)
             return {"found": False, "reason": f"the tabletop masks hold {100 * share:.0f}% of the table's points",
+                    "plain_table": _plain_table_masks(cams, tmp, und_masks, given or set()),
                     "consistent": _consistent_falloff_masks(cams, und_masks, given or set(), tmp / "points.ply")}
     und_masks.mkdir(parents=True, exist_ok=True)
     for c in cams:
