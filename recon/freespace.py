@@ -6,6 +6,9 @@ to the point crosses empty space. Where such segments pass through the visual hu
 holds space the photos saw through. No silhouette can carve a concavity (every view sees past
 it), but the points SfM triangulated on a concavity's floor are seen through the hull over it.
 
+SfM's points are sparse; the photos' own depth maps inside the hull (:mod:`recon.mvs`, a plane
+sweep) add many more where the surface has texture, and carve the same way.
+
 The pieces (the init_mesh stage puts them together, :func:`carve_hull`, with :func:`seen_points`):
 
 - :func:`free_space_counts`: per voxel of the hull's grid, how many distinct points' segments
@@ -123,6 +126,23 @@ def is_simple(cube: np.ndarray) -> bool:
     return len(touching) == 1
 
 
+def topology6(obj: np.ndarray) -> tuple[int, int, int]:
+    """The object's components (6-connected), the empty space's (26-connected, the outside
+    counted) and the Euler characteristic of the (6, 26) pair (voxels - face-adjacent pairs +
+    full 2x2 squares - full 2x2x2 cubes): equal for two voxel sets of the same topology."""
+    from scipy import ndimage
+
+    o = np.pad(np.asarray(obj, bool), 1)
+    v = int(o.sum())
+    e = int((o[1:] & o[:-1]).sum() + (o[:, 1:] & o[:, :-1]).sum() + (o[:, :, 1:] & o[:, :, :-1]).sum())
+    f = int((o[1:, 1:] & o[:-1, 1:] & o[1:, :-1] & o[:-1, :-1]).sum()
+            + (o[1:, :, 1:] & o[:-1, :, 1:] & o[1:, :, :-1] & o[:-1, :, :-1]).sum()
+            + (o[:, 1:, 1:] & o[:, :-1, 1:] & o[:, 1:, :-1] & o[:, :-1, :-1]).sum())
+    c = int((o[1:, 1:, 1:] & o[:-1, 1:, 1:] & o[1:, :-1, 1:] & o[1:, 1:, :-1] & o[:-1, :-1, 1:] & o[:-1, 1:, :-1]
+             & o[1:, :-1, :-1] & o[:-1, :-1, :-1]).sum())
+    return ndimage.label(o, structure=_S6)[1], ndimage.label(~o, structure=_S26)[1], v - e + f - c
+
+
 def carve(inside: np.ndarray, free: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
     """The voxels of ``inside`` (bool (R, R, R)) to remove: those marked ``free`` that are
     reachable from the empty space through other removed voxels, each removed only while it is
@@ -131,10 +151,20 @@ def carve(inside: np.ndarray, free: np.ndarray, depth: np.ndarray | None = None)
     empty space): the carving dives through its first opening and grows one cavity outwards.
     Shallowest first, fronts start at many openings and meet, and the walls between them are
     not simple (removing one would open a tunnel): on a bowl's hull 7,000 free voxels stayed as
-    such walls, against 1,700 deepest first. Returns a bool mask."""
+    such walls, against 1,700 deepest first. Returns a bool mask.
+
+    First all of them at once: when that keeps the topology (:func:`topology6`), as it does for a
+    bowl's cavity, the voxel-by-voxel carving (tens of seconds for 100,000 voxels) is not needed."""
     import heapq
 
     from scipy import ndimage
+
+    lab, n = ndimage.label(free & inside, structure=_S6)
+    if n:
+        opening = np.unique(lab[ndimage.binary_dilation(~inside, structure=_S6) & (lab > 0)])
+        bulk = np.isin(lab, opening[opening > 0])
+        if bulk.any() and topology6(inside & ~bulk) == topology6(inside):
+            return bulk
 
     obj = np.pad(inside, 1, constant_values=False)
     cand = np.pad(free & inside, 1, constant_values=False)
@@ -226,17 +256,32 @@ def _near_points(points: np.ndarray, grid: Grid, radius: float) -> np.ndarray:
     return ndimage.binary_dilation(near, structure=_ball(radius)) if radius >= 1.0 and at.size else near
 
 
-def carve_hull(field: np.ndarray, grid: Grid, seen: SeenPoints, settings) -> tuple[np.ndarray, dict]:
+def carve_hull(field: np.ndarray, grid: Grid, seen: SeenPoints | None, settings, cams: CameraSet | None = None,
+               masks: dict | None = None, views=None) -> tuple[np.ndarray, dict]:
     """``field`` (the visual hull's, :func:`recon.init_mesh.hull_field`) with the voxels that
-    SfM's points were seen through removed, and what was done (the module docstring; settings:
-    :class:`recon.init_mesh.InitMeshSettings`' ``free_space_*``). Kept only if the surface's
-    genus stays."""
+    SfM's points (``seen``, or None) were seen through removed, and what was done (the module
+    docstring; settings: :class:`recon.init_mesh.InitMeshSettings`' ``free_space_*``). With
+    ``views`` (``views(stem)``: the linear image of a view of ``cams``, whose ``masks`` these are)
+    and ``dense_points`` > 0, the points of the views' depth maps inside the hull
+    (:func:`recon.mvs.dense_seen_points`) carve too, their segments stopping
+    ``dense_stop_voxels`` short of them. Kept only if the surface's genus stays."""
     from recon.init_mesh import _ball, isosurface, largest_component, topology
 
     t0 = time.perf_counter()
     inside = field > 0
-    counts = free_space_counts(seen.centers, seen.points, seen.view, seen.point, grid, inside,
-                               settings.free_space_stop_voxels)
+    dense, dense_info = None, None
+    if views is not None and cams is not None and settings.dense_points > 0:
+        from recon.mvs import dense_seen_points
+
+        dense, dense_info = dense_seen_points(cams, views, masks or {}, field, grid, settings.dense_points)
+        log.info("dense points: %d from the photos' depth maps inside the hull (median %.0f per view), %.1f s%s",
+                 dense_info.get("points", 0), dense_info.get("per_view_median", 0.0), dense_info.get("seconds", 0.0),
+                 f" ({dense_info['reason']})" if dense is None and "reason" in dense_info else "")
+    sets = [(s, stop) for s, stop in ((seen, settings.free_space_stop_voxels), (dense, settings.dense_stop_voxels))
+            if s is not None]
+    if not sets:
+        return field, {"points": 0, "dense": dense_info, "kept": False}
+    counts = sum(free_space_counts(s.centers, s.points, s.view, s.point, grid, inside, stop) for s, stop in sets)
     free = counts >= settings.free_space_points
     closing = settings.free_space_closing_voxels
     from scipy import ndimage
@@ -254,9 +299,13 @@ def carve_hull(field: np.ndarray, grid: Grid, seen: SeenPoints, settings) -> tup
         skin = inside & (field < closing * grid.step)
         free |= ndimage.binary_dilation(free, structure=_ball(closing)) & skin
     # never within stop_voxels of a point: a point is on the surface
-    free &= ~_near_points(seen.points, grid, settings.free_space_stop_voxels)
+    def near_any(extra: float) -> np.ndarray:
+        return np.logical_or.reduce([_near_points(s.points, grid, stop + extra) for s, stop in sets])
+
+    free &= ~near_any(0.0)
     removed = carve(inside, free, field)
-    info = {"points": int(len(seen.points)), "observations": int(len(seen.view)),
+    info = {"points": int(sum(len(s.points) for s, _ in sets)), "observations": int(sum(len(s.view) for s, _ in sets)),
+            "dense": dense_info,
             "min_points": settings.free_space_points, "voxels_free": int(free.sum()),
             "voxels_carved": int(removed.sum()),
             "fraction_of_hull": float(removed.sum() / max(1, inside.sum())), "kept": False}
@@ -267,8 +316,11 @@ def carve_hull(field: np.ndarray, grid: Grid, seen: SeenPoints, settings) -> tup
         near = ndimage.binary_dilation(removed, structure=_ball(settings.free_space_closing_voxels + 1.0))
         kept = inside & ~removed
         thin = kept & near & ~ndimage.binary_opening(kept, structure=_ball(settings.free_space_opening_voxels))
-        thin &= ~_near_points(seen.points, grid, settings.free_space_stop_voxels + 1.0)  # a thin wall holds points
-        kept &= ~thin
+        thin &= ~near_any(1.0)  # a thin wall holds points
+        # removed as the carving removes: from the surface inwards and only where the topology
+        # stays (removed whole, a remnant over a thin wall opened a tunnel through it: a bowl's
+        # hull went from genus 0 to 6 with dense points, docs/init_mesh.md)
+        kept &= ~carve(kept, thin, field)
         lab, n = ndimage.label(kept, structure=ndimage.generate_binary_structure(3, 1))
         if n > 1:
             kept = lab == 1 + int(np.argmax(np.bincount(lab.ravel())[1:]))
@@ -277,7 +329,11 @@ def carve_hull(field: np.ndarray, grid: Grid, seen: SeenPoints, settings) -> tup
         info["fraction_of_hull"] = float(removed.sum() / max(1, inside.sum()))
         carved = carved_field(field, removed, grid.step)
         # the carved surface is as rough as the voxels: smoothed where it was carved
+        # (the sign at every voxel kept: the smoothing moves the surface, never a voxel across it,
+        # so it cannot open a thin wall)
         smooth = ndimage.gaussian_filter(carved, 1.0)
+        floor = 0.05 * grid.step
+        smooth = np.where(carved > 0, np.maximum(smooth, floor), np.minimum(smooth, -floor))
         carved = np.where(near, smooth, carved)
         before = topology(largest_component(isosurface(field, grid, space="grid")))["genus"]
         after = topology(largest_component(isosurface(carved, grid, space="grid")))["genus"]
@@ -287,7 +343,7 @@ def carve_hull(field: np.ndarray, grid: Grid, seen: SeenPoints, settings) -> tup
         else:
             log.info("free-space carving left out: it changed the hull's genus from %d to %d", before, after)
     info["seconds"] = time.perf_counter() - t0
-    log.info("free space: %d voxels inside the hull seen through by >= %d of SfM's %d points; %d carved "
+    log.info("free space: %d voxels inside the hull seen through by >= %d of the %d points; %d carved "
              "(%.1f %% of the hull)%s, %.1f s", info["voxels_free"], settings.free_space_points, info["points"],
              info["voxels_carved"], 100 * info["fraction_of_hull"], "" if info["kept"] or not removed.any()
              else " and left out", info["seconds"])

@@ -16,15 +16,14 @@ masks, built without CUDA, made to tolerate wrong masks (docs/init_mesh.md):
       outside it, the voted one less the band elsewhere: the vote's inflation and its thin fins
       along the views' rims go, the wrong views' carvings stay filled;
    c. a grey-scale closing by a ball of ``closing_radius``: thin and shallow tunnels close.
-   d. with SfM's cameras, the space SfM's points were seen through is carved from it
-      (:mod:`recon.freespace`, ``free_space_*``): the concavities no silhouette carves (a
-      bowl's inside), keeping the topology.
+   d. the space SfM's points and the photos' depth maps (:mod:`recon.mvs`, ``dense_*``) were seen
+      through is carved (:mod:`recon.freespace`, ``free_space_*``): the concavities no silhouette
+      carves (a bowl's inside), keeping the topology.
    The zero level set lies between voxels, so the surface is placed to sub-voxel precision.
 2. Zero level set by flying-edges marching cubes (``open3d.t.geometry.TriangleMesh.
    create_isosurfaces``); positive inside gives outward normals (checked: positive volume).
    The largest connected component is kept.
-3. pymeshlab clean-up and isotropic remeshing (``meshing_isotropic_explicit_remeshing``) to
-   the edge length that gives about ``target_faces`` faces.
+3. pymeshlab clean-up and isotropic remeshing to about ``target_faces`` faces.
 4. A mesh that is not a watertight two-manifold of one piece is repaired with a warning
    (:func:`make_closed_manifold`: pymeshlab's repair filters, else the alpha wrap, else the
    convex hull), never an error: nothing the user could change would help.
@@ -33,7 +32,7 @@ masks, built without CUDA, made to tolerate wrong masks (docs/init_mesh.md):
    written to ``init_mesh.json`` (``genus``, ``mask_iou``, ``hull``, ``repairs``).
 
 The mesh is in the cameras.json frame. The visual hull contains the object (never cuts it when
-the masks are right) but cannot see concavities; the optimizer carves those.
+the masks are right) but cannot see concavities; 1d and the optimizer carve those.
 
 An object standing on a table (a support plane, ``plane.json`` of the masks or poses stage,
 :mod:`recon.support`): cameras above the table see the silhouette cones reach down under it,
@@ -59,7 +58,8 @@ import numpy as np
 from recon.hull import Grid, HullError, silhouette_fields
 from recon.io.atomic import atomic_dir
 from recon.io.cameras import CameraError, CameraSet, load_cameras
-from recon.io.images import read_mask
+from recon.io.images import read_exr, read_mask
+from recon.metrics import mask_agreement  # noqa: F401 (public here since the stage began)
 from recon.io.mesh import Mesh, MeshError, read_mesh, write_ply
 from recon.support import PlaneError, SupportPlane, plane_if_found
 
@@ -79,6 +79,7 @@ class InitMeshSettings:
     points_margin: float = 0.05
     bound_margin: float = 0.05  # fitted grids extend the coarse hull's box by this fraction
     min_views: int = 2  # a voxel must be seen by this many views to be kept
+    min_mask_iou: float = 0.5  # the hull's mean silhouette IoU with the masks below this: the masks are wrong, stop
     mask_margin_px: float = 0.5  # grow the silhouettes by this many pixels (mask edge safety)
     target_faces: int = 5000
     remesh_iterations: int = 8
@@ -121,6 +122,8 @@ class InitMeshSettings:
     # wrong match, a reflection) and seen by at least free_space_min_views views
     free_space_max_error_px: float = 2.0
     free_space_min_views: int = 3
+    dense_points: int = 3000  # the photos' depth maps inside the hull (recon.mvs): points per view, 0: off
+    dense_stop_voxels: float = 1.0  # free_space_stop_voxels for their points
 
     def __post_init__(self):
         if self.resolution < 8:
@@ -135,8 +138,9 @@ class InitMeshSettings:
             raise ValueError(f"outside_fraction must be in [0, 0.5) (a minority of the views), got {self.outside_fraction}")
         if self.free_space_points < 0 or self.free_space_stop_voxels < 0 or self.free_space_max_error_px <= 0 \
                 or self.free_space_min_views < 2 or self.free_space_closing_voxels < 0 \
-                or self.free_space_opening_voxels < 0:
-            raise ValueError("free_space_points and free_space_stop_voxels must be >= 0, free_space_max_error_px > 0 "
+                or self.free_space_opening_voxels < 0 or self.dense_points < 0 or self.dense_stop_voxels < 0:
+            raise ValueError("free_space_points, free_space_stop_voxels, dense_points and dense_stop_voxels must be >= 0, "
+                             "free_space_max_error_px > 0 "
                              f"and free_space_min_views >= 2, got {self.free_space_points}, "
                              f"{self.free_space_stop_voxels}, {self.free_space_max_error_px}, {self.free_space_min_views}")
         if not (0.0 <= self.strict_band < 0.25 and 0.0 <= self.closing_radius < 0.25):
@@ -390,14 +394,21 @@ def remesh(mesh: Mesh, target_faces: int, iterations: int = 8) -> Mesh:
 
     # equilateral triangles of edge L: area sqrt(3)/4 L^2 each
     edge = float(np.sqrt(4.0 * mesh.area() / (np.sqrt(3.0) * target_faces)))
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(mesh.v_pos, mesh.t_pos_idx))
-    ms.meshing_remove_duplicate_vertices()
-    ms.meshing_remove_null_faces()
-    if len(mesh.t_pos_idx) > 8 * target_faces:  # cheaper remeshing from a decimated start
-        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=4 * target_faces, preservetopology=True,
-                                                    preserveboundary=True, planarquadric=True)
-    ms.meshing_isotropic_explicit_remeshing(iterations=iterations, targetlen=pymeshlab.PureValue(edge))
+    from recon.optimize.guard import self_intersecting_faces as crossing
+
+    # from a decimated start (cheaper), unless that folds a thin wall (a carved bowl's) through itself
+    for decimate in (len(mesh.t_pos_idx) > 8 * target_faces, False):
+        ms = pymeshlab.MeshSet()
+        ms.add_mesh(pymeshlab.Mesh(mesh.v_pos, mesh.t_pos_idx))
+        ms.meshing_remove_duplicate_vertices()
+        ms.meshing_remove_null_faces()
+        if decimate:
+            ms.meshing_decimation_quadric_edge_collapse(targetfacenum=4 * target_faces, preservetopology=True,
+                                                        preserveboundary=True, planarquadric=True)
+        ms.meshing_isotropic_explicit_remeshing(iterations=iterations, targetlen=pymeshlab.PureValue(edge))
+        m = ms.current_mesh()
+        if not decimate or not crossing(m.vertex_matrix(), m.face_matrix()).any():
+            break
     ms.meshing_remove_unreferenced_vertices()
     pinched = int(ms.get_topological_measures()["non_two_manifold_vertices"])
     if pinched:  # remeshing can pinch a thin tunnel of the hull to a vertex: split it (stays closed)
@@ -544,52 +555,16 @@ def _clip_field(field: np.ndarray, grid: Grid, clip) -> np.ndarray:
     return out
 
 
-def mask_agreement(mesh: Mesh, cams: CameraSet, masks: dict[str, np.ndarray], max_side: int = 400) -> dict:
-    """How well ``mesh``'s silhouettes match the masks: per view the IoU of the pixels whose
-    center ray hits the mesh and the mask's pixels (open3d ray casting, on every s-th pixel for
-    images larger than ``max_side``).
-
-    Returns ``{"mean", "min", "worst": [[stem, iou], ...] (the 3 lowest), "per_view": {stem: iou}}``;
-    views the vote outvoted show up among the worst.
-    """
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(mesh.v_pos.astype(np.float32)),
-                        o3d.core.Tensor(mesh.t_pos_idx.astype(np.uint32)))
-    per_view = {}
-    for cam in cams:
-        mask = masks.get(cam.stem)
-        if mask is None:
-            continue
-        stride = max(1, int(np.ceil(max(cam.width, cam.height) / max_side)))
-        rows = np.arange(stride // 2, cam.height, stride)
-        cols = np.arange(stride // 2, cam.width, stride)
-        j, i = np.meshgrid(cols + 0.5, rows + 0.5)
-        d_cam = np.stack([j, i, np.ones_like(j)], -1).reshape(-1, 3) @ np.linalg.inv(cam.K).T
-        c2w = cam.camera_to_world
-        d_world = d_cam @ c2w[:3, :3].T
-        rays = np.concatenate([np.broadcast_to(c2w[:3, 3], d_world.shape), d_world], 1).astype(np.float32)
-        hit = np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy())
-        m = mask[np.ix_(rows, cols)].reshape(-1).astype(bool)
-        union = int((hit | m).sum())
-        per_view[cam.stem] = float((hit & m).sum() / union) if union else 1.0
-    if not per_view:
-        return {"mean": None, "min": None, "worst": [], "per_view": {}}
-    worst = sorted(per_view.items(), key=lambda kv: kv[1])[:3]
-    values = np.array(list(per_view.values()))
-    return {"mean": float(values.mean()), "min": float(values.min()), "worst": [[k, v] for k, v in worst],
-            "per_view": per_view}
-
-
 def visual_hull_mesh(cams: CameraSet, masks: dict[str, np.ndarray],
                      settings: InitMeshSettings = InitMeshSettings(),
-                     plane: SupportPlane | None = None, seen=None, points: np.ndarray | None = None) -> tuple[Mesh, dict]:
+                     plane: SupportPlane | None = None, seen=None, points: np.ndarray | None = None,
+                     views=None) -> tuple[Mesh, dict]:
     """The remeshed visual hull and statistics; the grid is [-bound, bound]^3, or fitted to
     the hull (:func:`hull_bounds`) when ``bound`` is 0. With a support ``plane`` the hull is
     cut at it and the base is flat, on the plane. With SfM's ``seen`` points
     (:class:`recon.freespace.SeenPoints`, and ``free_space_points`` > 0) the space they were seen
-    through is carved from it. A hull the masks leave unbounded is closed at the object's SfM
+    through is carved from it, and with ``views`` (``views(stem)``: a view's linear image) the
+    points of the photos' depth maps too (:mod:`recon.mvs`). A hull the masks leave unbounded is closed at the object's SfM
     ``points`` on those sides (:func:`bounded_by_points`), with a warning."""
     t0 = time.perf_counter()
     clip = None
@@ -612,10 +587,10 @@ def visual_hull_mesh(cams: CameraSet, masks: dict[str, np.ndarray],
     if clip is not None:
         field = _clip_field(field, grid, clip)
     free_info = None
-    if seen is not None and settings.free_space_points > 0:
+    if (seen is not None or views is not None) and settings.free_space_points > 0:
         from recon.freespace import carve_hull
 
-        field, free_info = carve_hull(field, grid, seen, settings)
+        field, free_info = carve_hull(field, grid, seen, settings, cams, masks, views)
     t1 = time.perf_counter()
     inside = field > 0
     touches = _touches(inside)
@@ -677,6 +652,7 @@ def run_init_mesh(
     given_mesh: str | os.PathLike | None = None,
     plane_json: str | os.PathLike | None = None,
     sparse_dir: str | os.PathLike | None = None,
+    views_dir: str | os.PathLike | None = None,
 ) -> dict:
     """Write ``out_dir/mesh.ply`` (and ``init_mesh.json``); ``out_dir`` is replaced atomically.
 
@@ -690,6 +666,7 @@ def run_init_mesh(
         the hull is cut at it and its base is flat on it (:func:`visual_hull_mesh`).
     sparse_dir : the poses stage's SfM model (``poses/sparse``; None for given cameras): its points
         carve the space they were seen through (``free_space_points``).
+    views_dir : the pinhole linear views (``<stem>.exr``): their depth maps carve too (``dense_points``).
     """
     out_dir = Path(out_dir)
     t0 = time.perf_counter()
@@ -740,7 +717,8 @@ def run_init_mesh(
 
                 points = object_points(seen, cams, masks)
             try:
-                mesh, stats = visual_hull_mesh(cams, masks, settings, plane, seen, points)
+                views = None if views_dir is None else lambda stem: read_exr(Path(views_dir) / f"{stem}.exr")
+                mesh, stats = visual_hull_mesh(cams, masks, settings, plane, seen, points, views)
             except InitMeshError as e:
                 if str(e).startswith("the visual hull"):  # the masks' fault: say which and what to do
                     raise InitMeshError(
@@ -749,6 +727,16 @@ def run_init_mesh(
                         "views (or all), or photograph the object with nothing lit near it") from e
                 raise
             topo = check_closed_manifold(mesh, "the visual hull mesh")
+            agree = (stats.get("mask_iou") or {}).get("mean")
+            if agree is not None and agree < settings.min_mask_iou:
+                # masks that are not silhouettes of one object (a plain table taken whole): the
+                # hull is what few views agree on, and any asset from it is not the object
+                raise InitMeshError(
+                    f"the visual hull agrees with its own masks at IoU {agree:.2f} on average (the masks of one object "
+                    f"give > 0.9; init_mesh.min_mask_iou = {settings.min_mask_iou}): the masks do not show one object "
+                    f"from every side. They are {masks_dir}/<stem>.png (white: the object); where they hold the table, "
+                    "the floor or the background, give masks/<stem>.png in the capture, or photograph the object on a "
+                    "textured cloth or a printed mat")
             write_ply(tmp / "mesh.ply", mesh)
             stats["source"] = "visual_hull"
             stats["views_with_masks"] = len(masks)

@@ -289,3 +289,41 @@ def image_rmse(
         raise MetricsError("image_rmse: an image has NaN or Inf inside the masks")
     d = linear_to_srgb(a) - linear_to_srgb(b)
     return float(np.sqrt(np.mean(d[union] ** 2)))
+
+
+def mask_agreement(mesh: Mesh, cams: CameraSet, masks: dict[str, np.ndarray], max_side: int = 400) -> dict:
+    """How well ``mesh``'s silhouettes match the masks: per view the IoU of the pixels whose
+    center ray hits the mesh and the mask's pixels (open3d ray casting, on every s-th pixel for
+    images larger than ``max_side``).
+
+    Returns ``{"mean", "min", "worst": [[stem, iou], ...] (the 3 lowest), "per_view": {stem: iou}}``;
+    views the vote outvoted show up among the worst.
+    """
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.v_pos.astype(np.float32)),
+                        o3d.core.Tensor(mesh.t_pos_idx.astype(np.uint32)))
+    per_view = {}
+    for cam in cams:
+        mask = masks.get(cam.stem)
+        if mask is None:
+            continue
+        stride = max(1, int(np.ceil(max(cam.width, cam.height) / max_side)))
+        rows = np.arange(stride // 2, cam.height, stride)
+        cols = np.arange(stride // 2, cam.width, stride)
+        j, i = np.meshgrid(cols + 0.5, rows + 0.5)
+        d_cam = np.stack([j, i, np.ones_like(j)], -1).reshape(-1, 3) @ np.linalg.inv(cam.K).T
+        c2w = cam.camera_to_world
+        d_world = d_cam @ c2w[:3, :3].T
+        rays = np.concatenate([np.broadcast_to(c2w[:3, 3], d_world.shape), d_world], 1).astype(np.float32)
+        hit = np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy())
+        m = mask[np.ix_(rows, cols)].reshape(-1).astype(bool)
+        union = int((hit | m).sum())
+        per_view[cam.stem] = float((hit & m).sum() / union) if union else 1.0
+    if not per_view:
+        return {"mean": None, "min": None, "worst": [], "per_view": {}}
+    worst = sorted(per_view.items(), key=lambda kv: kv[1])[:3]
+    values = np.array(list(per_view.values()))
+    return {"mean": float(values.mean()), "min": float(values.min()), "worst": [[k, v] for k, v in worst],
+            "per_view": per_view}

@@ -36,6 +36,25 @@ def test_simple_points():
     assert fs.is_simple(_cube(lambda c: c.__setitem__((1, 1, 0), True)))
 
 
+def test_topology6_counts_components_cavities_and_tunnels():
+    ball = np.zeros((12, 12, 12), bool)
+    ball[2:10, 2:10, 2:10] = True
+    assert fs.topology6(ball) == (1, 1, 1)
+    ring = ball.copy()
+    ring[4:8, 4:8, :] = False  # a square hole through it: a tunnel
+    assert fs.topology6(ring) == (1, 1, 0)
+    hollow = ball.copy()
+    hollow[4:8, 4:8, 4:8] = False  # a closed cavity
+    assert fs.topology6(hollow) == (1, 2, 2)
+    two = np.concatenate([ball, ball], axis=0)
+    assert fs.topology6(two) == (2, 1, 2)
+    # touching along an edge only: two pieces for the 6-connected object
+    diag = np.zeros((6, 6, 6), bool)
+    diag[1:3, 1:3, 1:5] = True
+    diag[3:5, 3:5, 1:5] = True
+    assert fs.topology6(diag)[0] == 2 and fs.topology6(diag)[2] == 2
+
+
 def _euler6(obj):
     """Components of the object (6-connected) and of the empty space (26-connected, padded)."""
     pad = np.pad(obj, 1)

@@ -335,6 +335,25 @@ def test_run_init_mesh_reports_genus_and_mask_agreement(tmp_path):
     assert saved["hull"]["outside_fraction"] == 0.1 and saved["repairs"] == []
 
 
+def test_masks_that_show_no_one_object_stop_the_stage_and_say_so(tmp_path):
+    """Masks that are not silhouettes of one object (each view's mask a disc in its own place, as
+    masks that took a plain table whole are): the hull agrees with them at a mean IoU far below
+    any object's, and the stage stops naming the masks and the fix, leaving no output. Before,
+    such a run exported a slab (a vase on a plain desk: accuracy 0.35, 87 % not the object)."""
+    sphere = _sphere(0.3)
+    cams = _ring()
+    rng = np.random.default_rng(0)
+    save_cameras(tmp_path / "cameras.json", cams)
+    for c in cams:  # the object's silhouette and a large lit region beside it, in its own place in each view
+        j, i = np.meshgrid(np.arange(c.width), np.arange(c.height))
+        cx, cy = rng.uniform(0.2, 0.8) * c.width, rng.uniform(0.2, 0.8) * c.height
+        lit = (j - cx) ** 2 + (i - cy) ** 2 < (0.4 * c.height) ** 2
+        write_mask(tmp_path / "masks" / f"{c.stem}.png", silhouette(sphere, c) | lit)
+    with pytest.raises(rim.InitMeshError, match=r"agrees with its own masks at IoU 0\.\d+.*masks/<stem>.png"):
+        rim.run_init_mesh(tmp_path / "cameras.json", tmp_path / "masks", tmp_path / "init_mesh", VOTE)
+    assert not (tmp_path / "init_mesh").exists()
+
+
 def _broken_sphere() -> Mesh:
     """A sphere with 3 faces missing (a hole) and a second, inward-facing sphere glued to it
     along one edge (a non-manifold edge): the defects the stage once stopped on."""

@@ -22,6 +22,7 @@ rule init_mesh:
         masks_dir=get_view_masks_dir,
         plane=get_plane,
         sparse=untracked(get_sparse_dir),
+        views=untracked(get_views_dir),
         given=untracked(get_given_init_mesh),
         capture_files=capture_files(get_given_init_mesh),
         settings=get_settings("init_mesh"),

@@ -15,4 +15,5 @@ with stage(snakemake.log[0]):  # noqa: F821 (injected by Snakemake); errors: see
         given_mesh=snakemake.params.given or None,  # noqa: F821
         plane_json=snakemake.params.plane,  # noqa: F821
         sparse_dir=snakemake.params.sparse or None,  # noqa: F821
+        views_dir=snakemake.params.views,  # noqa: F821
     )
