@@ -1,5 +1,6 @@
-"""The initial mesh with and without SfM's free space (recon.freespace; docs/init_mesh.md,
-"Carving what the photos saw through").
+"""The initial mesh with and without the free space of SfM's points and of the photos' depth maps
+(recon.freespace, recon.mvs; docs/init_mesh.md, "Carving what the photos saw through" and
+"Dense points").
 
 For each scene: the poses stage's results of a synthetic capture (``<results>/<scene>``: SfM's
 cameras, masks, plane and sparse model) and the capture's ground truth (``<captures>/<scene>/gt``).
@@ -7,7 +8,8 @@ The hull's field is built once with the draft preset's init_mesh settings; then 
 per scene: the hull voxels that are not the object, the voxels the carving removed and how many
 of them lie inside the true object (wrong), and the raw surface's genus, accuracy, completeness
 and share of it farther than 2 % of the object's size from it (all in units of the true bounding
-box's longest side), without and with the carving. ``--figure`` writes a vertical section
+box's longest side), without carving, carved by SfM's points alone, and carved by them and the
+depth maps (the views from ``poses/undistorted``, or ``linear`` for given cameras). ``--figure`` writes a vertical section
 through each scene's true centre (true surface green, the surfaces red).
 
     .venv/bin/python bench/freespace.py --results /tmp/e2e/results --captures /tmp/e2e/captures \\
@@ -58,8 +60,13 @@ def scene(results: Path, captures: Path, name: str, settings: rim.InitMeshSettin
     center, half, _ = rim.hull_bounds(cams, masks, settings, plane=plane)
     grid = rim.Grid.cube(center, half, settings.resolution)
     field, _, _ = rim.hull_field(cams, masks, grid, settings, plane)
-    seen = fs_mod.seen_points(res / "poses" / "sparse", cams, settings)
-    carved, info = fs_mod.carve_hull(field, grid, seen, settings)
+    seen = fs_mod.seen_points(res / "poses" / "sparse", cams, settings) if (res / "poses" / "sparse").is_dir() else None
+    carved, info = fs_mod.carve_hull(field, grid, seen, settings) if seen is not None else (field, {"kept": False})
+    views_dir = res / "poses" / "undistorted" if seen is not None else res / "linear"
+    from recon.io.images import read_exr
+
+    dense, dinfo = fs_mod.carve_hull(field, grid, seen, settings, cams, masks,
+                                     lambda stem: read_exr(views_dir / f"{stem}.exr"))
     sim = align_cameras(cams, load_cameras(cap / "gt" / "cameras.json"))
     gt = read_obj(cap / "gt" / "mesh.obj")
     lo, hi = gt.bbox()
@@ -70,11 +77,14 @@ def scene(results: Path, captures: Path, name: str, settings: rim.InitMeshSettin
     occ = occ.reshape(field.shape) > 0
     inside = field > 0
     removed = inside & (carved <= 0)
-    hull, cut = _surface(field, grid, sim), _surface(carved, grid, sim)
+    removed_d = inside & (dense <= 0)
+    hull, cut, cut_d = _surface(field, grid, sim), _surface(carved, grid, sim), _surface(dense, grid, sim)
     return {"scene": name, "hull_not_object": int((inside & ~occ).sum()), "hull_voxels": int(inside.sum()),
             "carved": int(removed.sum()), "carved_wrong": int((removed & occ).sum()), "kept": info["kept"],
-            "hull": _measure(hull, gt, unit), "with": _measure(cut, gt, unit),
-            "meshes": (gt, hull, cut)}
+            "carved_dense": int(removed_d.sum()), "carved_dense_wrong": int((removed_d & occ).sum()),
+            "kept_dense": dinfo["kept"], "dense_points": (dinfo.get("dense") or {}).get("points", 0),
+            "hull": _measure(hull, gt, unit), "with": _measure(cut, gt, unit), "dense": _measure(cut_d, gt, unit),
+            "meshes": (gt, hull, cut_d)}
 
 
 def figure(rows: list[dict], path: Path) -> None:
@@ -93,7 +103,8 @@ def figure(rows: list[dict], path: Path) -> None:
             return p[np.abs(p[:, 1] - y) < 0.01]
 
         g = section(gt)
-        for ax, (title, m) in zip(ax_row, (("visual hull", hull), ("carved by SfM's free space", cut)), strict=True):
+        for ax, (title, m) in zip(ax_row, (("visual hull", hull), ("carved (SfM's points, depth maps)", cut)),
+                                  strict=True):
             p = section(m)
             ax.scatter(g[:, 0], g[:, 2], s=0.2, c="tab:green")
             ax.scatter(p[:, 0], p[:, 2], s=0.2, c="tab:red")
@@ -117,21 +128,24 @@ def main(argv=None) -> int:
     settings = rim.InitMeshSettings(**(yaml.safe_load(preset.read_text()).get("init_mesh") or {}))
     rows = []
     out = sys.stdout
-    out.write("| scene | hull voxels not the object | carved (inside the object) | genus | accuracy | "
-              "completeness | surface > 2 % away |\n|---|---|---|---|---|---|---|\n")
+    out.write("| scene | hull voxels not the object | carved: SfM / + depth maps (inside the object) | dense points | "
+              "genus | accuracy: hull / SfM / + depth maps | completeness | surface > 2 % away |\n"
+              "|---|---|---|---|---|---|---|---|\n")
     for name in a.scenes:
         r = scene(a.results, a.captures, name, settings)
         rows.append(r)
-        h, w = r["hull"], r["with"]
+        h, w, d = r["hull"], r["with"], r["dense"]
         kept = "" if r["kept"] or not r["carved"] else " (left out)"
-        out.write(f"| {name} | {r['hull_not_object']:,} of {r['hull_voxels']:,} | {r['carved']:,} ({r['carved_wrong']:,}){kept} "
-              f"| {h['genus']} -> {w['genus']} | {h['accuracy']:.4f} -> {w['accuracy']:.4f} | "
-              f"{h['completeness']:.4f} -> {w['completeness']:.4f} | {100 * h['far_2pct']:.1f} -> "
-              f"{100 * w['far_2pct']:.1f} % |\n")
+        kept_d = "" if r["kept_dense"] or not r["carved_dense"] else " (left out)"
+        out.write(f"| {name} | {r['hull_not_object']:,} of {r['hull_voxels']:,} | {r['carved']:,} ({r['carved_wrong']:,})"
+                  f"{kept} / {r['carved_dense']:,} ({r['carved_dense_wrong']:,}){kept_d} | {r['dense_points']:,} "
+                  f"| {h['genus']} / {w['genus']} / {d['genus']} | {h['accuracy']:.4f} / {w['accuracy']:.4f} / "
+                  f"{d['accuracy']:.4f} | {h['completeness']:.4f} / {w['completeness']:.4f} / {d['completeness']:.4f} "
+                  f"| {100 * h['far_2pct']:.1f} / {100 * w['far_2pct']:.1f} / {100 * d['far_2pct']:.1f} % |\n")
         out.flush()
     if a.figure is not None:
         os.makedirs(a.figure.parent, exist_ok=True)
-        figure([r for r in rows if r["carved"]] or rows[:1], a.figure)
+        figure([r for r in rows if r["carved_dense"]] or rows[:1], a.figure)
     return 0
 
 

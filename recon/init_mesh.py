@@ -124,6 +124,7 @@ class InitMeshSettings:
     free_space_min_views: int = 3
     dense_points: int = 3000  # the photos' depth maps inside the hull (recon.mvs): points per view, 0: off
     dense_stop_voxels: float = 1.0  # free_space_stop_voxels for their points
+    dense_alone: bool = False  # they carve where SfM's points see nothing (a glossy glaze's reflections cut in)
 
     def __post_init__(self):
         if self.resolution < 8:
