@@ -283,35 +283,39 @@ def carve_hull(field: np.ndarray, grid: Grid, seen: SeenPoints | None, settings,
     if not sets:
         return field, {"points": 0, "dense": dense_info, "kept": False}
     counts = [free_space_counts(s.centers, s.points, s.view, s.point, grid, inside, stop) for s, stop in sets]
-    free = sum(counts) >= settings.free_space_points
-    # what SfM's points alone see through: the depth maps only widen and deepen a cavity that SfM's
-    # points opened (a glossy glaze's reflections of the table match at their mirror depth, inside
-    # the object: glossy-mug and wood-vase lost 7,098 and 9,650 voxels of the object to them)
-    sfm_free = counts[0] >= settings.free_space_points if seen is not None else np.zeros_like(inside)
-    closing = settings.free_space_closing_voxels
     from scipy import ndimage
 
-    if closing >= 1.0:
-        # the segments are a few voxels apart: the space between them is free too
-        free = ndimage.binary_closing(free, structure=_ball(closing)) & inside
-    if settings.free_space_opening_voxels >= 1.0:
-        # and only where the space is free in bulk: an opening drops the thin streaks of the
-        # segments that graze the surface or cross the hull alone (a wrong point, a reflection)
-        free = ndimage.binary_opening(free, structure=_ball(settings.free_space_opening_voxels))
-    if closing >= 1.0:
-        # the hull's outer layer, which the segments cross only where they enter, goes with what
-        # lies under it (else it stays as a lid with one opening: the carving keeps the topology)
-        skin = inside & (field < closing * grid.step)
-        free |= ndimage.binary_dilation(free, structure=_ball(closing)) & skin
-    # never within stop_voxels of a point: a point is on the surface
+    closing = settings.free_space_closing_voxels
+    near = np.logical_or.reduce([_near_points(s.points, grid, stop) for s, stop in sets])
+
+    def bulk(free: np.ndarray) -> np.ndarray:
+        if closing >= 1.0:
+            # the segments are a few voxels apart: the space between them is free too
+            free = ndimage.binary_closing(free, structure=_ball(closing)) & inside
+        if settings.free_space_opening_voxels >= 1.0:
+            # and only where the space is free in bulk: an opening drops the thin streaks of the
+            # segments that graze the surface or cross the hull alone (a wrong point, a reflection)
+            free = ndimage.binary_opening(free, structure=_ball(settings.free_space_opening_voxels))
+        if closing >= 1.0:
+            # the hull's outer layer, which the segments cross only where they enter, goes with what
+            # lies under it (else it stays as a lid with one opening: the carving keeps the topology)
+            skin = inside & (field < closing * grid.step)
+            free |= ndimage.binary_dilation(free, structure=_ball(closing)) & skin
+        return free & ~near  # never within stop_voxels of a point: a point is on the surface
+
+    free = bulk(sum(counts) >= settings.free_space_points)
+    if dense is not None and not settings.dense_alone:
+        # the depth maps only widen and deepen a cavity that SfM's points alone open (a glossy
+        # glaze's reflections of the table match at their mirror depth, inside the object:
+        # glossy-mug and wood-vase lost 7,098 and 9,650 voxels of the object to them alone)
+        sfm = bulk(counts[0] >= settings.free_space_points) if seen is not None else np.zeros_like(inside)
+        lab, n = ndimage.label(free, structure=_S6)
+        confirmed = np.unique(lab[sfm & (lab > 0)])
+        free = np.isin(lab, confirmed[confirmed > 0])
+
     def near_any(extra: float) -> np.ndarray:
         return np.logical_or.reduce([_near_points(s.points, grid, stop + extra) for s, stop in sets])
 
-    free &= ~near_any(0.0)
-    if dense is not None and not settings.dense_alone:
-        lab, n = ndimage.label(free, structure=_S6)
-        confirmed = np.unique(lab[sfm_free & (lab > 0)])
-        free = np.isin(lab, confirmed[confirmed > 0])
     removed = carve(inside, free, field)
     info = {"points": int(sum(len(s.points) for s, _ in sets)), "observations": int(sum(len(s.view) for s, _ in sets)),
             "dense": dense_info,
