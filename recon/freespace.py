@@ -270,25 +270,11 @@ def carve_hull(field: np.ndarray, grid: Grid, seen: SeenPoints | None, settings,
 
     t0 = time.perf_counter()
     inside = field > 0
-    dense, dense_info = None, None
-    if views is not None and cams is not None and settings.dense_points > 0 and (seen is not None or settings.dense_alone):
-        from recon.mvs import dense_seen_points
-
-        dense, dense_info = dense_seen_points(cams, views, masks or {}, field, grid, settings.dense_points)
-        log.info("dense points: %d from the photos' depth maps inside the hull (median %.0f per view), %.1f s%s",
-                 dense_info.get("points", 0), dense_info.get("per_view_median", 0.0), dense_info.get("seconds", 0.0),
-                 f" ({dense_info['reason']})" if dense is None and "reason" in dense_info else "")
-    sets = [(s, stop) for s, stop in ((seen, settings.free_space_stop_voxels), (dense, settings.dense_stop_voxels))
-            if s is not None]
-    if not sets:
-        return field, {"points": 0, "dense": dense_info, "kept": False}
-    counts = [free_space_counts(s.centers, s.points, s.view, s.point, grid, inside, stop) for s, stop in sets]
     from scipy import ndimage
 
     closing = settings.free_space_closing_voxels
-    near = np.logical_or.reduce([_near_points(s.points, grid, stop) for s, stop in sets])
 
-    def bulk(free: np.ndarray) -> np.ndarray:
+    def bulk(free: np.ndarray, near: np.ndarray) -> np.ndarray:
         if closing >= 1.0:
             # the segments are a few voxels apart: the space between them is free too
             free = ndimage.binary_closing(free, structure=_ball(closing)) & inside
@@ -303,12 +289,33 @@ def carve_hull(field: np.ndarray, grid: Grid, seen: SeenPoints | None, settings,
             free |= ndimage.binary_dilation(free, structure=_ball(closing)) & skin
         return free & ~near  # never within stop_voxels of a point: a point is on the surface
 
-    free = bulk(sum(counts) >= settings.free_space_points)
+    counts, near, sfm = [], [], np.zeros_like(inside)
+    if seen is not None:
+        counts.append(free_space_counts(seen.centers, seen.points, seen.view, seen.point, grid, inside,
+                                        settings.free_space_stop_voxels))
+        near.append(_near_points(seen.points, grid, settings.free_space_stop_voxels))
+        sfm = bulk(counts[0] >= settings.free_space_points, near[0])
+    # the depth maps only widen and deepen a cavity that SfM's points alone open (a glossy glaze's
+    # reflections of the table match at their mirror depth, inside the object: glossy-mug and
+    # wood-vase lost 7,098 and 9,650 voxels of the object to them alone); none: not computed
+    dense, dense_info = None, None
+    if views is not None and cams is not None and settings.dense_points > 0 and (sfm.any() or settings.dense_alone):
+        from recon.mvs import dense_seen_points
+
+        dense, dense_info = dense_seen_points(cams, views, masks or {}, field, grid, settings.dense_points)
+        log.info("dense points: %d from the photos' depth maps inside the hull (median %.0f per view), %.1f s%s",
+                 dense_info.get("points", 0), dense_info.get("per_view_median", 0.0), dense_info.get("seconds", 0.0),
+                 f" ({dense_info['reason']})" if dense is None and "reason" in dense_info else "")
+    sets = [(s, stop) for s, stop in ((seen, settings.free_space_stop_voxels), (dense, settings.dense_stop_voxels))
+            if s is not None]
+    if not sets:
+        return field, {"points": 0, "dense": dense_info, "kept": False}
+    if dense is not None:
+        counts.append(free_space_counts(dense.centers, dense.points, dense.view, dense.point, grid, inside,
+                                        settings.dense_stop_voxels))
+        near.append(_near_points(dense.points, grid, settings.dense_stop_voxels))
+    free = bulk(sum(counts) >= settings.free_space_points, np.logical_or.reduce(near))
     if dense is not None and not settings.dense_alone:
-        # the depth maps only widen and deepen a cavity that SfM's points alone open (a glossy
-        # glaze's reflections of the table match at their mirror depth, inside the object:
-        # glossy-mug and wood-vase lost 7,098 and 9,650 voxels of the object to them alone)
-        sfm = bulk(counts[0] >= settings.free_space_points) if seen is not None else np.zeros_like(inside)
         lab, n = ndimage.label(free, structure=_S6)
         confirmed = np.unique(lab[sfm & (lab > 0)])
         free = np.isin(lab, confirmed[confirmed > 0])
