@@ -225,15 +225,15 @@ def dense_seen_points(cams: CameraSet, load: Callable[[str], np.ndarray], masks:
               for c, w in zip(cams, wcams, strict=True)]
     far = float(np.linalg.norm(np.stack([c.center for c in cams]) - target, axis=1).max()) + 2.0 * grid.step * grid.resolution
     margin = settings.margin_voxels * grid.step
-    depths, scores = [], []
+    depths = []
     for i, w in enumerate(wcams):
         front, back = hull_depths(w, scene, far)
         m = masks.get(cams[i].stem)
         m = np.ones((w.height, w.width), bool) if m is None else \
             cv2.resize(m.astype(np.uint8), (w.width, w.height), interpolation=cv2.INTER_NEAREST).astype(bool)
-        d, s = sweep_view(i, list(wcams), images, nbrs[i], front, back, m, margin, settings)
-        depths.append(d)
-        scores.append(s)
+        depths.append(sweep_view(i, list(wcams), images, nbrs[i], front, back, m, margin, settings)[0])
+        if (i + 1) % max(1, len(wcams) // 4) == 0 and i + 1 < len(wcams):
+            log.info("depth maps: %d of %d views, %.0f s", i + 1, len(wcams), time.perf_counter() - t0)
     # the geometric check: a neighbour's own depth map agrees at the point's projection
     rng = np.random.default_rng(seed)
     pts, obs_view, obs_point = [], [], []
