@@ -57,6 +57,32 @@ def _cameras_at_image_size(cams: CameraSet, images: list[np.ndarray], source) ->
     return dataclasses.replace(cams, frames=tuple(frames))
 
 
+def table_points_share(points: np.ndarray | None, plane, cams: CameraSet, masks: dict[str, np.ndarray],
+                       tolerance: float = 0.01) -> float | None:
+    """The share of the table's points (``points`` within ``tolerance`` of the cameras' spread of
+    ``plane``) that fall inside the views' ``masks``, over every view whose frame they fall in (in
+    front of it). Masks of an object on a table hold only those the object hides; masks that took
+    the table hold most. None with fewer than 20 such points."""
+    if points is None:
+        return None
+    pts = np.asarray(points, float).reshape(-1, 3)
+    spread = float(np.ptp(np.array([c.center for c in cams]), axis=0).max())
+    pts = pts[np.abs(plane.height(pts)) < tolerance * spread]
+    if len(pts) < 20:
+        return None
+    inside = total = 0
+    for cam in cams:
+        m = masks.get(cam.stem)
+        if m is None:
+            continue
+        xy, z = cam.project(pts)
+        j, i = np.floor(xy[:, 0]), np.floor(xy[:, 1])
+        ok = np.isfinite(xy).all(1) & (z > 0) & (j >= 0) & (j < m.shape[1]) & (i >= 0) & (i < m.shape[0])
+        inside += int(m[i[ok].astype(int), j[ok].astype(int)].sum())
+        total += int(ok.sum())
+    return inside / total if total else None
+
+
 def run_view_masks(
     image_dir: str | os.PathLike,
     cameras: str | os.PathLike,
@@ -68,6 +94,7 @@ def run_view_masks(
     given_stems: Collection[str] | None = None,
     consistent_settings: ConsistentSettings | None = None,
     plain_settings: PlainSettings | None = None,
+    max_table_in_masks: float = 0.5,
 ) -> dict:
     """Write ``out_dir/<stem>.png`` (object masks), ``out_dir/masks.json`` and, when a support
     plane is found, ``out_dir/plane.json`` (:mod:`recon.support`, in the frame of ``cameras``).
@@ -87,6 +114,9 @@ def run_view_masks(
     mask_settings : the flash-falloff masks' settings, used when no plane is found.
     consistent_settings : the vote that makes those masks consistent across the views
         (:mod:`recon.masks.consistent`).
+    max_table_in_masks : tabletop masks holding more than this share of the table's points
+        (:func:`table_points_share`) took the table and are not used: the object is then taken as
+        in the void (a plain desk with a few points on it: the plain table's model follows).
     plain_settings : the model of a plain table (:mod:`recon.masks.plain`), whose pixels are taken
         out of the flash-falloff masks when no plane is found in the points but the photos show
         the object on a plain table.
@@ -138,11 +168,21 @@ def run_view_masks(
     elif plane is not None:
         log.info("support plane found (%s): %s", plane_info["source"], plane_info["reason"])
         derived, seg_info = segment_tabletop(images, cams, plane, settings, points=pts)
-        for cam, m in zip(cams, derived, strict=True):
-            masks[cam.stem] = m
-            views[cam.stem] = {"source": "tabletop", **seg_info["views"][cam.stem]}
-        method = "tabletop"
-    else:
+        share = table_points_share(pts, plane, cams, dict(zip([c.stem for c in cams], derived, strict=True)))
+        if share is not None and share > max_table_in_masks:
+            # the tabletop masks took the table (a plain desk with a few points on it: they need its
+            # texture); as the poses stage does with SfM's observations, they are not used
+            log.warning("a plane was found in the points, but the tabletop masks hold %.0f%% of the table's points in "
+                        "the views' frames (masks of an object on a table: a few %%): they took the table and are "
+                        "not used; the object is taken as in the void", 100 * share)
+            plane, plane_info = None, {**plane_info, "found": False,
+                                       "reason": f"the tabletop masks hold {100 * share:.0f}% of the table's points"}
+        else:
+            for cam, m in zip(cams, derived, strict=True):
+                masks[cam.stem] = m
+                views[cam.stem] = {"source": "tabletop", **seg_info["views"][cam.stem]}
+            method = "tabletop"
+    if plane is None:
         if len(given) < len(cams):
             log.info("no support plane (%s): masks from the flash falloff, as for an object in the void "
                      "(recon.masks)", plane_info.get("reason"))

@@ -512,9 +512,14 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
         return {"found": False, "reason": f"tabletop masks failed: {str(e).splitlines()[0]}",
                 "plain_table": _plain_table_masks(cams, tmp, und_masks, given or set()),
                 "consistent": _consistent_falloff_masks(cams, und_masks, given or set(), tmp / "points.ply")}
-    if not (tmp / "tabletop" / "plane.json").is_file():  # the same points, the same plane: not expected
+    if not (tmp / "tabletop" / "plane.json").is_file():
+        # the tabletop masks refused there (they took the table: recon.masks.views.table_points_share)
         shutil.rmtree(tmp / "tabletop")
-        return {"found": False, "reason": summary["plane"].get("reason")}
+        log.warning("a plane was found in the SfM points, but the tabletop masks took the table (%s) and are not "
+                    "used", summary["plane"].get("reason"))
+        return {"found": False, "reason": summary["plane"].get("reason"),
+                "plain_table": _plain_table_masks(cams, tmp, und_masks, given or set()),
+                "consistent": _consistent_falloff_masks(cams, und_masks, given or set(), tmp / "points.ply")}
     if rec is not None and sim is not None:
         from recon.io.images import read_mask
 
