@@ -333,9 +333,9 @@ def carve_hull(field: np.ndarray, grid: Grid, seen: SeenPoints | None, settings,
         # what the carving leaves of the hull's outer layer over the cavity (pieces of a lid
         # that the topology held: a thread of voxels, a flap) goes: the object is opened by a
         # ball where the carving was, and only its largest part kept
-        near = ndimage.binary_dilation(removed, structure=_ball(settings.free_space_closing_voxels + 1.0))
+        around = ndimage.binary_dilation(removed, structure=_ball(settings.free_space_closing_voxels + 1.0))
         kept = inside & ~removed
-        thin = kept & near & ~ndimage.binary_opening(kept, structure=_ball(settings.free_space_opening_voxels))
+        thin = kept & around & ~ndimage.binary_opening(kept, structure=_ball(settings.free_space_opening_voxels))
         thin &= ~near_any(1.0)  # a thin wall holds points
         # removed as the carving removes: from the surface inwards and only where the topology
         # stays (removed whole, a remnant over a thin wall opened a tunnel through it: a bowl's
@@ -354,7 +354,7 @@ def carve_hull(field: np.ndarray, grid: Grid, seen: SeenPoints | None, settings,
         smooth = ndimage.gaussian_filter(carved, 1.0)
         floor = 0.05 * grid.step
         smooth = np.where(carved > 0, np.maximum(smooth, floor), np.minimum(smooth, -floor))
-        carved = np.where(near, smooth, carved)
+        carved = np.where(around, smooth, carved)
         before = topology(largest_component(isosurface(field, grid, space="grid")))["genus"]
         after = topology(largest_component(isosurface(carved, grid, space="grid")))["genus"]
         info.update(genus_before=before, genus_after=after)

@@ -278,15 +278,4 @@ def dense_seen_points(cams: CameraSet, load: Callable[[str], np.ndarray], masks:
     return seen, info
 
 
-def merged(a, b):
-    """Two :class:`recon.freespace.SeenPoints` of the same cameras as one (either may be None)."""
-    from recon.freespace import SeenPoints
-
-    if a is None or b is None:
-        return a if b is None else b
-    n = len(a.points)
-    return SeenPoints(a.centers, np.concatenate([a.points, b.points]), np.concatenate([a.view, b.view]),
-                      np.concatenate([a.point, b.point + n]))
-
-
-__all__ = ["SweepSettings", "dense_seen_points", "hull_depths", "merged", "neighbours", "sweep_view"]
+__all__ = ["SweepSettings", "dense_seen_points", "hull_depths", "neighbours", "sweep_view"]
