@@ -509,17 +509,15 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
         shutil.rmtree(tmp / "tabletop", ignore_errors=True)
         log.warning("a plane was found in the SfM points, but the tabletop masks failed, so the masks stage's "
                     "masks are kept (no support plane), made consistent across the views. %s", e)
-        return {"found": False, "reason": f"tabletop masks failed: {str(e).splitlines()[0]}",
-                "plain_table": _plain_table_masks(cams, tmp, und_masks, given or set()),
-                "consistent": _consistent_falloff_masks(cams, und_masks, given or set(), tmp / "points.ply")}
+        return _masks_without_the_plane(cams, tmp, und_masks, given or set(), plane, rec,
+                                        {"found": False, "reason": f"tabletop masks failed: {str(e).splitlines()[0]}"})
     if not (tmp / "tabletop" / "plane.json").is_file():
         # the tabletop masks refused there (they took the table: recon.masks.views.table_points_share)
         shutil.rmtree(tmp / "tabletop")
         log.warning("a plane was found in the SfM points, but the tabletop masks took the table (%s) and are not "
                     "used", summary["plane"].get("reason"))
-        return {"found": False, "reason": summary["plane"].get("reason"),
-                "plain_table": _plain_table_masks(cams, tmp, und_masks, given or set()),
-                "consistent": _consistent_falloff_masks(cams, und_masks, given or set(), tmp / "points.ply")}
+        return _masks_without_the_plane(cams, tmp, und_masks, given or set(), plane, rec,
+                                        {"found": False, "reason": summary["plane"].get("reason")})
     if rec is not None and sim is not None:
         from recon.io.images import read_mask
 
@@ -533,9 +531,9 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
                         "points that the views saw (masks of an object on a table: a few %%): they took the table "
                         "and are not used, the masks stage's masks are kept (no support plane), made consistent "
                         "across the views. Give masks/<stem>.png in the capture if these fail too", 100 * share)
-            return {"found": False, "reason": f"the tabletop masks hold {100 * share:.0f}% of the table's points",
-                    "plain_table": _plain_table_masks(cams, tmp, und_masks, given or set()),
-                    "consistent": _consistent_falloff_masks(cams, und_masks, given or set(), tmp / "points.ply")}
+            return _masks_without_the_plane(
+                cams, tmp, und_masks, given or set(), plane, rec,
+                {"found": False, "reason": f"the tabletop masks hold {100 * share:.0f}% of the table's points"})
     und_masks.mkdir(parents=True, exist_ok=True)
     for c in cams:
         os.replace(tmp / "tabletop" / f"{c.stem}.png", und_masks / f"{c.stem}.png")
@@ -544,6 +542,27 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
     shutil.rmtree(tmp / "tabletop")
     log.info("support plane found in the SfM points: tabletop masks in undistorted/masks, plane.json written")
     return {k: v for k, v in summary["plane"].items() if not isinstance(v, (list, dict)) or k == "camera_elevation_deg"}
+
+
+def _masks_without_the_plane(cams: CameraSet, tmp: Path, und_masks: Path, given: set[str], plane: SupportPlane,
+                             rec, info: dict) -> dict:
+    """A plane in the SfM points whose tabletop masks failed or were refused: the plain table's
+    model, else the masks stage's flash-falloff masks made consistent, as for an object in the
+    void; then, unless the plain table's model was used, the check that those masks did not take
+    the lit table with the object (:func:`recon.masks.views.refuse_masks_holding_the_table`: a
+    stop that says what to do)."""
+    plain = _plain_table_masks(cams, tmp, und_masks, given)
+    out = {**info, "plain_table": plain,
+           "consistent": _consistent_falloff_masks(cams, und_masks, given, tmp / "points.ply")}
+    if not plain.get("plain") and len(given) < len(cams):
+        from recon.io.images import read_mask
+        from recon.masks.views import refuse_masks_holding_the_table
+
+        masks = {c.stem: read_mask(und_masks / f"{c.stem}.png") for c in cams if (und_masks / f"{c.stem}.png").is_file()}
+        registered = "" if rec is None else f" ({rec.num_reg_images()} views registered by SfM)"
+        out["table_points_share_falloff"] = refuse_masks_holding_the_table(
+            read_points_ply(tmp / "points.ply"), plane, cams, masks, registered=registered)
+    return out
 
 
 # cameras.json of SfM: the object frame's z is up (the photos' up as displayed, or the table's

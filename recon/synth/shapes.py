@@ -11,6 +11,11 @@ and inside the cube [-0.95, 0.95]^3 (so inside DESIGN's [-1, 1]^3 object frame):
 - ``mug``: a cup with a flat base, an open cavity and a handle (genus 1), standing along +z:
   a concavity that no visual hull carves and a through-hole beside the body; made as the zero
   level set of a signed distance function (marching cubes, then isotropic remeshing).
+- ``box``: a box with flat faces and edges rounded to a few percent of its size (a product box:
+  planes a flash lights evenly, edges a smooth surface prior rounds off), standing on one face.
+- ``figure``: a figurine: a body and a head on two legs that stand apart, two thin arms held out
+  from the body (about 4 % of its height thick): parts thinner than a voxel of a coarse hull,
+  and a gap between the legs that only some views see through. Genus 0.
 - ``bell``, ``vase``, ``bowl``: surfaces of revolution standing along +z on a flat base
   (:func:`revolve`): a bell (a dome over a waist flaring out to a wide lip at the bottom, a
   knob on top), a tall vase (a belly, a narrow neck, an open mouth) and a low wide bowl (an
@@ -20,7 +25,7 @@ and inside the cube [-0.95, 0.95]^3 (so inside DESIGN's [-1, 1]^3 object frame):
 :func:`flatten_base` cuts an object flat at the bottom so that it can stand on a table
 (tabletop captures, :mod:`recon.synth.tabletop`).
 
-Shapes are functions of ``seed`` alone (numpy float64, no threads; the mug also goes through
+Shapes are functions of ``seed`` alone (numpy float64, no threads; the mug, the box and the figure also go through
 open3d's marching cubes, run on one thread, and pymeshlab's remeshing).
 """
 
@@ -31,8 +36,8 @@ import numpy as np
 from recon.io.mesh import Mesh
 from recon.synth.noise import fbm
 
-OBJECT_KINDS = ("blob", "torus", "smooth", "mug", "bell", "vase", "bowl")
-FLAT_BASE = ("mug", "bell", "vase", "bowl")
+OBJECT_KINDS = ("blob", "torus", "smooth", "mug", "bell", "vase", "bowl", "box", "figure")
+FLAT_BASE = ("mug", "bell", "vase", "bowl", "box", "figure")
 """Objects made standing on a flat base (a tabletop scene does not cut them flat)."""
 EXTENT = 0.95
 """Largest absolute coordinate of a generated object."""
@@ -209,17 +214,49 @@ def mug_sdf(points: np.ndarray, seed: int = 0) -> np.ndarray:
     return np.maximum(_smooth_min(body, handle, 0.06), -cavity)
 
 
-def mug(level: int = 6, seed: int = 0) -> Mesh:
-    """The ``mug``: marching cubes of :func:`mug_sdf`, remeshed to about ``20 * 4**level`` faces."""
+def box_sdf(points: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Signed distance (negative inside) of the ``box``: about 1.6 x 1.1 x 0.9, edges rounded by 0.04."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xB0C5]))
+    half = np.array([0.8, 0.55, 0.45]) * rng.uniform(0.9, 1.1, 3)
+    q = np.abs(points) - (half - 0.04)
+    return np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(-1), 0.0) - 0.04
+
+
+def _capsule(points: np.ndarray, a, b, r: float) -> np.ndarray:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ab = b - a
+    t = np.clip(((points - a) @ ab) / float(ab @ ab), 0.0, 1.0)
+    return np.linalg.norm(points - (a + t[..., None] * ab), axis=-1) - r
+
+
+def figure_sdf(points: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Signed distance (negative inside) of the ``figure``: legs (z from -1 up), a body, a head and
+    two thin arms held out sideways and a little forward; flat soles at z = -1."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xF16]))
+    x, y, z = points[..., 0], points[..., 1], points[..., 2]
+    spread = 0.22 * rng.uniform(0.9, 1.1)
+    legs = np.minimum(_capsule(points, (-spread, 0.0, -0.95), (-0.12, 0.0, -0.2), 0.11),
+                      _capsule(points, (spread, 0.0, -0.95), (0.12, 0.0, -0.2), 0.11))
+    body = (np.sqrt((x / 0.34) ** 2 + (y / 0.24) ** 2 + ((z - 0.05) / 0.42) ** 2) - 1.0) * 0.24
+    head = np.linalg.norm(points - np.array([0.0, 0.0, 0.72]), axis=-1) - 0.22 * rng.uniform(0.9, 1.1)
+    reach = 0.85 * rng.uniform(0.9, 1.05)
+    arms = np.minimum(_capsule(points, (-0.25, 0.0, 0.25), (-reach, 0.25, -0.05), 0.045),
+                      _capsule(points, (0.25, 0.0, 0.25), (reach, 0.25, 0.15), 0.045))
+    d = _smooth_min(_smooth_min(_smooth_min(body, legs, 0.08), head, 0.06), arms, 0.05)
+    return np.maximum(d, -1.0 - z)  # the soles cut flat
+
+
+def _sdf_mesh(sdf, level: int, seed: int, half: float = 1.25) -> Mesh:
+    """Marching cubes of ``sdf(points, seed)`` (negative inside), remeshed to about ``20 * 4**level``
+    faces and fitted to :data:`EXTENT`."""
     import open3d as o3d
     import pymeshlab
 
     n = int(np.clip(24 * 2 ** (level / 2), 64, 192))  # grid nodes per axis
-    half = 1.25
     g = np.linspace(-half, half, n)
     step = g[1] - g[0]
     grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1)
-    inside = -mug_sdf(grid, seed).astype(np.float32)  # positive inside
+    inside = -sdf(grid, seed).astype(np.float32)  # positive inside
     # open3d's marching cubes on one thread: on a busy machine its threads emit the triangles in
     # another order, and the remeshing below depends on that order (a mug of 767 vertices beside
     # its 784-vertex twin in one suite run); one thread gives the order of an idle machine's run
@@ -243,6 +280,21 @@ def mug(level: int = 6, seed: int = 0) -> Mesh:
     if out.volume() < 0:
         out = Mesh(out.v_pos, out.t_pos_idx[:, ::-1])
     return _fit_extent(out)
+
+
+def mug(level: int = 6, seed: int = 0) -> Mesh:
+    """The ``mug``: marching cubes of :func:`mug_sdf`, remeshed to about ``20 * 4**level`` faces."""
+    return _sdf_mesh(mug_sdf, level, seed)
+
+
+def box(level: int = 6, seed: int = 0) -> Mesh:
+    """The ``box``: marching cubes of :func:`box_sdf`, remeshed."""
+    return _sdf_mesh(box_sdf, level, seed)
+
+
+def figure(level: int = 6, seed: int = 0) -> Mesh:
+    """The ``figure``: marching cubes of :func:`figure_sdf`, remeshed."""
+    return _sdf_mesh(figure_sdf, level, seed)
 
 
 def flatten_base(mesh: Mesh, cut: float) -> Mesh:
@@ -360,6 +412,10 @@ def make_object(kind: str, level: int = 6, seed: int = 0) -> Mesh:
         return vase(level, seed)
     if kind == "bowl":
         return bowl(level, seed)
+    if kind == "box":
+        return box(level, seed)
+    if kind == "figure":
+        return figure(level, seed)
     if kind == "blob":
         return blob(level, seed, detail=True)
     if kind == "smooth":

@@ -22,8 +22,8 @@ def _edges(mesh):
     return np.unique(e, axis=0, return_counts=True)
 
 
-@pytest.mark.parametrize("kind", ["bell", "vase", "bowl"])
-def test_turned_shapes_are_closed_genus_0_and_stand_on_a_flat_base(kind):
+@pytest.mark.parametrize("kind", ["bell", "vase", "bowl", "box", "figure"])
+def test_standing_shapes_are_closed_genus_0_and_stand_on_a_flat_base(kind):
     m = make_object(kind, 3, seed=2)
     uniq, counts = _edges(m)
     assert set(counts.tolist()) == {2}  # closed two-manifold
@@ -37,6 +37,13 @@ def test_turned_shapes_are_closed_genus_0_and_stand_on_a_flat_base(kind):
     size = hi - lo
     if kind == "vase":
         assert size[2] > 2.0 * size[0]  # tall
+    if kind == "box":  # flat faces: most of the vertices lie on the six planes of the box's faces
+        on_face = (np.abs(np.abs(m.v_pos) - np.abs(m.v_pos).max(0)) < 1e-2).any(1)
+        assert on_face.mean() > 0.7
+    if kind == "figure":  # two feet apart: the soles' vertices fall in two groups either side of x = 0
+        sole = m.v_pos[base]
+        assert (sole[:, 0] < -0.1).any() and (sole[:, 0] > 0.1).any() and not (np.abs(sole[:, 0]) < 0.05).any()
+        assert size[0] > 1.5 * size[1]  # the arms held out sideways
     if kind == "bowl":
         assert size[2] < 0.4 * size[0]  # low
         # open: the axis (the two poles of the turned surface) runs from the base to the cavity's
