@@ -213,8 +213,47 @@ def _features_and_mapping(linear_dir: Path, work: Path, stems: list[str], settin
     t0 = time.perf_counter()
     rec, models, trials, trial, weak = map_views(db, images, work / "mapping", settings, len(stems), shape_sift,
                                                  f_sift, masks, up)
+    if rec is not None and f_sift is None and not trials[trial].get("intrinsics_ok"):
+        rec, models, trials, trial, weak = _held_at_a_focal_guess(db, images, work, settings, len(stems), shape_sift,
+                                                                  masks, up, (rec, models, trials, trial, weak))
     timings["map_s"] = time.perf_counter() - t0
     return rec, models, trials, trial, weak, up, shape, db, matcher
+
+
+def _held_at_a_focal_guess(db: Path, images: Path, work: Path, settings: PoseSettings, n: int, shape, masks: dict,
+                           up: int, mapped: tuple) -> tuple:
+    """No focal length stated (no EXIF, no ``poses.camera.focal_px``) and every mapping trial's
+    intrinsics drifted (:func:`recon.poses.mapping.intrinsics_ok`): the best such model can still
+    give the focal length. Its robust refinement with the distortion held at 0 (the guard of
+    :func:`recon.poses.mapping.refine`) is kept only if plausible, and the mapping runs again with
+    the intrinsics held at it; its models are judged as before. A blob in the void in 16 PNGs
+    without EXIF and strong vignetting: 8 trials "bogus intrinsics" (f 1005 px, k -1.5 for a true
+    703 px), the cameras of the one kept 13 % of their distance off, and the asset nothing like the
+    object. Without a plausible model after that, a stop that says what to give."""
+    import pycolmap
+
+    rec, models, trials, trial, weak = mapped
+    guess, ginfo = refine(pycolmap.Reconstruction(rec), settings, shape, None)
+    f_guess = float(next(iter(guess.cameras.values())).mean_focal_length())
+    held = None
+    if ginfo.get("distortion") != "held as mapped":
+        log.warning("no mapping trial kept plausible intrinsics (%s) and the photos state no focal length: SfM again "
+                    "with the intrinsics held at %.1f px (%.2f x the image's width), the best model's refined focal "
+                    "length", ", ".join(sorted({t["mapper"] for t in trials})), f_guess / up, f_guess / shape[1])
+        again = map_views(db, images, work / "mapping_held", settings, n, shape, f_guess, masks, up)
+        for t in again[2]:
+            t["held_at_focal_px"] = f_guess / up
+        if again[0] is not None and again[2][again[3]].get("intrinsics_ok") \
+                and len(again[0].reg_image_ids()) >= settings.mapping.min_registered_fraction * n:
+            held = (again[0], again[1], trials + again[2], len(trials) + again[3], again[4])
+    if held is None:
+        raise PoseError(
+            f"{images.parent.parent.parent}: SfM found no camera model with plausible intrinsics in {len(trials)} trials "
+            f"(the focal length and the lens distortion drifted), and the photos state no focal length (no EXIF "
+            "FocalLength). What to try: give poses.camera.focal_px in the capture's capture.yaml (the focal length in "
+            "pixels of the photos as they are; a phone's main camera: about 0.8 x the image's width), or use the "
+            "photos as the camera wrote them, with their EXIF")
+    return held
 
 
 def _sfm(linear_dir: Path, tmp: Path, settings: PoseSettings, masks_dir: Path | None,
