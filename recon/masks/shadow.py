@@ -66,12 +66,11 @@ def outline_normals(sil: np.ndarray, smooth: float = 2.0) -> tuple[np.ndarray, n
     leaves the silhouette), from the smoothed distance's gradient; zero where it is flat."""
     import cv2
 
-    s = np.ascontiguousarray(sil, np.uint8)
-    d_in = cv2.distanceTransform(s, cv2.DIST_L2, 3)
-    d_out = cv2.distanceTransform(1 - s, cv2.DIST_L2, 3)
+    from recon.hull import _signed_distance_px
+
     # a silhouette that fills the image or is empty has no outline: its distances are cv2's "none"
     big = float(max(sil.shape))
-    sd = (np.minimum(d_in, big) - np.minimum(d_out, big)).astype(np.float32)
+    sd = np.clip(_signed_distance_px(np.asarray(sil, bool)), -big, big)
     g = cv2.GaussianBlur(sd, (0, 0), smooth)
     gy, gx = np.gradient(g)
     norm = np.hypot(gx, gy)

@@ -215,13 +215,14 @@ def _features_and_mapping(linear_dir: Path, work: Path, stems: list[str], settin
                                                  f_sift, masks, up)
     if rec is not None and f_sift is None and not trials[trial].get("intrinsics_ok"):
         rec, models, trials, trial, weak = _held_at_a_focal_guess(db, images, work, settings, len(stems), shape_sift,
-                                                                  masks, up, (rec, models, trials, trial, weak))
+                                                                  masks, up, (rec, models, trials, trial, weak),
+                                                                  linear_dir.parent)
     timings["map_s"] = time.perf_counter() - t0
     return rec, models, trials, trial, weak, up, shape, db, matcher
 
 
 def _held_at_a_focal_guess(db: Path, images: Path, work: Path, settings: PoseSettings, n: int, shape, masks: dict,
-                           up: int, mapped: tuple) -> tuple:
+                           up: int, mapped: tuple, where: Path) -> tuple:
     """No focal length stated (no EXIF, no ``poses.camera.focal_px``) and every mapping trial's
     intrinsics drifted (:func:`recon.poses.mapping.intrinsics_ok`): the best such model can still
     give the focal length. Its robust refinement with the distortion held at 0 (the guard of
@@ -248,7 +249,7 @@ def _held_at_a_focal_guess(db: Path, images: Path, work: Path, settings: PoseSet
             held = (again[0], again[1], trials + again[2], len(trials) + again[3], again[4])
     if held is None:
         raise PoseError(
-            f"{images.parent.parent.parent}: SfM found no camera model with plausible intrinsics in {len(trials)} trials "
+            f"{where}: SfM found no camera model with plausible intrinsics in {len(trials)} trials "
             f"(the focal length and the lens distortion drifted), and the photos state no focal length (no EXIF "
             "FocalLength). What to try: give poses.camera.focal_px in the capture's capture.yaml (the focal length in "
             "pixels of the photos as they are; a phone's main camera: about 0.8 x the image's width), or use the "
