@@ -88,6 +88,9 @@ class InitMeshSettings:
     # the hull (genus 10-16 on the 40-view tabletop benchmark captures, where the void peers gave
     # 0 and 1); a 2-voxel closing removed them and kept the mug's handle (volume +1-2 %)
     plane_closing_voxels: int = 2
+    # without one: the hull's part below the lowest point any view sees of it is cut flat (the
+    # keel under an object on a plain desk; recon.unseen)
+    unseen_base: bool = True
     # the vote (recon.hull.votes_needed): a voxel is carved only when more than this fraction of
     # the views that see it (it projects into their frame) put it outside their mask, so one
     # view's mask error cannot carve a hole, a tunnel or a missing part once 10 views see the
@@ -592,6 +595,17 @@ def visual_hull_mesh(cams: CameraSet, masks: dict[str, np.ndarray],
         from recon.freespace import carve_hull
 
         field, free_info = carve_hull(field, grid, seen, settings, cams, masks, views)
+    base = None
+    if plane is None and settings.unseen_base:
+        from recon.unseen import unseen_base
+
+        probe = largest_component(isosurface(field, grid, space="grid"))
+        base, base_info = unseen_base(Mesh(probe.v_pos * grid.step + grid.origin, probe.t_pos_idx), cams, masks,
+                                      grid.step)
+        if base is not None:
+            field = np.minimum(field, base.height(grid.points()).reshape(field.shape).astype(field.dtype))
+            log.info("the hull goes on %.0f voxels below the lowest point the views see of it: cut there, flat "
+                     "(an object standing on something no plane was found for)", base_info["depth_voxels"])
     t1 = time.perf_counter()
     inside = field > 0
     touches = _touches(inside)
@@ -605,8 +619,8 @@ def visual_hull_mesh(cams: CameraSet, masks: dict[str, np.ndarray],
     mesh = Mesh(mesh.v_pos * grid.step + grid.origin, mesh.t_pos_idx)
     raw = Mesh(raw.v_pos * grid.step + grid.origin, raw.t_pos_idx)
     on_plane = 0
-    if plane is not None:
-        mesh, on_plane = flatten_base(mesh, plane, 0.5 * grid.step)
+    if plane is not None or base is not None:
+        mesh, on_plane = flatten_base(mesh, plane or base, 0.5 * grid.step)
     mesh, repairs = make_closed_manifold(mesh, grid.step)
     t3 = time.perf_counter()
     agreement = mask_agreement(mesh, cams, masks)
@@ -622,6 +636,8 @@ def visual_hull_mesh(cams: CameraSet, masks: dict[str, np.ndarray],
         "repairs": repairs,
         "mask_iou": agreement,
         "plane": None if plane is None else {"cut": True, "base_vertices": on_plane, **plane.to_dict()},
+        "unseen_base": None if plane is not None or not settings.unseen_base else
+        {**base_info, "base_vertices": on_plane, **({} if base is None else base.to_dict())},
         "grid": {"center": center.tolist(), "half_size": float(half), "resolution": settings.resolution,
                  "voxel": float(grid.step), "source": source},
         "timings": {"field_s": t1 - t0, "isosurface_s": t2 - t1, "remesh_s": t3 - t2, "mask_iou_s": t4 - t3},
@@ -761,7 +777,8 @@ def report_summary(init_mesh_json: str | os.PathLike) -> dict | None:
     """The initial mesh's few numbers the report shows (from ``init_mesh.json``; None when the
     file is absent or unreadable): ``source``, ``faces``, ``genus``, ``mask_iou_mean``,
     ``mask_iou_min``, ``mask_iou_worst`` ([[stem, iou], ...]), ``repairs`` and ``grid_source``
-    (how the grid was placed: "closed at the SfM points on ..." where the masks left the hull open)."""
+    (how the grid was placed: "closed at the SfM points on ..." where the masks left the hull open) and
+    ``unseen_base`` (voxels of hull cut below the lowest part the views saw, or None)."""
     try:
         stats = json.loads(Path(init_mesh_json).read_text())
     except (OSError, ValueError):
@@ -772,4 +789,5 @@ def report_summary(init_mesh_json: str | os.PathLike) -> dict | None:
     genus = stats.get("genus", (stats.get("topology") or {}).get("genus"))
     return {"source": stats.get("source"), "faces": stats.get("faces"), "genus": genus,
             "mask_iou_mean": iou.get("mean"), "mask_iou_min": iou.get("min"), "mask_iou_worst": iou.get("worst", []),
-            "repairs": stats.get("repairs", []), "grid_source": (stats.get("grid") or {}).get("source")}
+            "repairs": stats.get("repairs", []), "grid_source": (stats.get("grid") or {}).get("source"),
+            "unseen_base": (stats.get("unseen_base") or {}).get("depth_voxels") if (stats.get("unseen_base") or {}).get("cut") else None}

@@ -1,4 +1,5 @@
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -178,8 +179,8 @@ def test_visual_hull_on_a_table_is_cut_at_the_plane_with_a_flat_base():
     obj, cams, plane = _on_table()
     masks = {c.stem: silhouette(obj, c) for c in cams}
     s = rim.InitMeshSettings(resolution=64, target_faces=2000)
-    free, _ = rim.visual_hull_mesh(cams, masks, s)
-    # without the plane the silhouette cones reach far below the table
+    free, _ = rim.visual_hull_mesh(cams, masks, replace(s, unseen_base=False))
+    # without the plane (and the cut below what the views saw) the cones reach far below the table
     assert free.v_pos[:, 2].min() < -0.1
     mesh, stats = rim.visual_hull_mesh(cams, masks, s, plane)
     rim.check_closed_manifold(mesh)
@@ -211,10 +212,15 @@ def test_run_init_mesh_reads_the_plane_file_and_keeps_the_void_without_one(tmp_p
     st = rim.run_init_mesh(tmp_path / "cameras.json", tmp_path / "masks", tmp_path / "cut", s,
                            plane_json=tmp_path / "masks" / "plane.json")
     assert st["plane"]["cut"] and read_ply(tmp_path / "cut" / "mesh.ply").v_pos[:, 2].min() >= -1e-9
-    # no plane file (none found): today's hull, reaching below the table
+    # no plane file (none found): the hull is cut below the lowest point the views see of it, a
+    # voxel or two under the table (recon.unseen), and the cut is on record
     st = rim.run_init_mesh(tmp_path / "cameras.json", tmp_path / "masks", tmp_path / "void", s,
                            plane_json=tmp_path / "absent" / "plane.json")
-    assert st["plane"] is None and read_ply(tmp_path / "void" / "mesh.ply").v_pos[:, 2].min() < -0.1
+    z = read_ply(tmp_path / "void" / "mesh.ply").v_pos[:, 2]
+    assert st["plane"] is None and st["unseen_base"]["cut"] and -3 * st["grid"]["voxel"] < z.min() < 0
+    st = rim.run_init_mesh(tmp_path / "cameras.json", tmp_path / "masks", tmp_path / "keel", replace(s, unseen_base=False),
+                           plane_json=tmp_path / "absent" / "plane.json")
+    assert st["unseen_base"] is None and read_ply(tmp_path / "keel" / "mesh.ply").v_pos[:, 2].min() < -0.1
     (tmp_path / "masks" / "plane.json").write_text("{}")
     with pytest.raises(rim.InitMeshError, match="plane.json"):
         rim.run_init_mesh(tmp_path / "cameras.json", tmp_path / "masks", tmp_path / "bad", s,

@@ -123,3 +123,34 @@ def test_the_dim_table_far_behind_the_object_is_no_shadow():
         darks.append(far)
     u, info = shadow_direction(darks, sils)
     assert u is None, info
+
+
+def test_dark_along_the_foot_in_every_view_is_the_object_not_a_shadow():
+    """A mug glazed dark on its lower half, photographed from above: dark along the bottom of the
+    outline in every view, one direction that all views share. The foot stands on the table,
+    where no shadow can show: refused when the views' direction towards the foot is given; a
+    shadow beside the object (the flash beside the lens) is still found."""
+    sils, darks, _, _ = _views(shadow=(0.0, 1.0))  # the dark band, down in the pixels
+    down = [np.array([0.0, 1.0])] * len(sils)
+    assert shadow_direction(darks, sils)[0] is not None  # without the foot's side: taken, wrongly
+    u, info = shadow_direction(darks, sils, down=down)
+    assert u is None and info["foot_angle"] < 10 and "foot" in info["reason"], info
+    # the photos turned a little about the lens (hand-held): the foot is 20 degrees off down
+    tilted = [np.array([np.sin(a), np.cos(a)]) for a in np.radians(np.linspace(-20, 20, len(sils)))]
+    assert shadow_direction(darks, sils, down=tilted)[0] is None
+    sils, darks, _, _ = _views(shadow=(-1.0, 0.0))
+    u, info = shadow_direction(darks, sils, down=down)
+    assert u is not None and abs(info["foot_angle"] - 90) < 15, info
+    with pytest.raises(ValueError):
+        ShadowSettings(foot_deg=180.0)
+
+
+def test_towards_foot_is_down_in_an_upright_view():
+    from recon.io.cameras import Camera, intrinsics, look_at
+    from recon.masks.shadow import towards_foot
+
+    cam = Camera("images/a.png", 160, 120, intrinsics(160, 120, 50), look_at([0, -3, 2], [0, 0, 0.3]))
+    (d,) = towards_foot([cam], np.zeros(3), np.array([0.0, 0.0, 0.5]))
+    np.testing.assert_allclose(d, [0.0, 1.0], atol=1e-6)  # image y grows downwards
+    (d,) = towards_foot([cam], np.zeros(3), np.zeros(3))  # one pixel: no direction, no NaN
+    assert np.array_equal(d, [0.0, 0.0])

@@ -99,6 +99,13 @@ class CameraSet:
     def by_stem(self) -> dict[str, Camera]:
         return {c.stem: c for c in self.frames}
 
+    def up(self) -> np.ndarray:
+        """The views' mean up direction, unit length (photos are taken upright: up is a camera's
+        -y); +z when they cancel."""
+        up = -np.mean([c.camera_to_world[:3, 1] for c in self.frames], axis=0)
+        n = np.linalg.norm(up)
+        return up / n if n > 1e-9 else np.array([0.0, 0.0, 1.0])
+
 
 def _matrix(value, shape, where: str) -> np.ndarray:
     try:

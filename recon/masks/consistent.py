@@ -83,13 +83,6 @@ class ConsistentSettings:
             raise ValueError(f"min_kept must be in [0, 1], got {self.min_kept}")
 
 
-def _up(cams: CameraSet) -> np.ndarray:
-    """The cameras' mean up direction (photos are taken upright: up is -y of the camera)."""
-    up = -np.mean([c.camera_to_world[:3, 1] for c in cams], axis=0)
-    n = np.linalg.norm(up)
-    return up / n if n > 1e-9 else np.array([0.0, 0.0, 1.0])
-
-
 def _resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
     import cv2
 
@@ -209,7 +202,7 @@ def _first_box(cams: CameraSet) -> tuple[np.ndarray, float, SupportPlane]:
     and the floor that far below it across the cameras' mean up."""
     target = aim_point(cams)
     half = 0.6 * scene_scale(cams, target)
-    up = _up(cams)
+    up = cams.up()
     return target, half, SupportPlane.through(target - half * up, up)
 
 
@@ -217,7 +210,7 @@ def _vote(masks, cams, wcams, values, voters: list[int], settings: ConsistentSet
     """:func:`consistent_masks`' vote among the views ``voters``; the other views take the hull's
     silhouette (shrunk by a voxel's footprint)."""
     target, half, ground = _first_box(cams)
-    up = _up(cams)  # as the floor's (unnormalised again: the same bits as before)
+    up = cams.up()  # as the floor's (unnormalised again: the same bits as before)
 
     def floor_under(center, h):
         return SupportPlane.through(np.asarray(center) - h * up, up)

@@ -394,8 +394,9 @@ def plain_table_masks(points: np.ndarray, load, cams: CameraSet, skip: Collectio
         else:
             empty.append(c.stem)
     log.warning("%s; too few of the sparse points lie on it to fit its plane, so each view's mask is what is neither "
-                "that table nor the dark background, and the object is reconstructed as in the void: its base is "
-                "not seen (a textured cloth or the printed mat under the object gives the plane and the base)%s",
+                "that table nor the dark background; the table's height is not known, so the object's base is closed "
+                "flat below the lowest part the views see (a textured cloth or the printed mat under the object gives "
+                "the plane and the base)%s",
                 info["reason"], f"; views left with their flash-falloff masks (all table): {', '.join(empty)}"
                 if empty else "")
     return masks, {**info, "views_left": empty}

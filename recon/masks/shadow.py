@@ -27,6 +27,14 @@ angles) fall on every side as the object turns between the views. So:
 3. Where there is a shadow, a view's dark pixels in the band whose outward normal points that
    way are the table in the flash's shadow (:func:`shadow_pixels`): they vote their rays empty
    in the 3D vote and are table in the graph cut.
+
+One direction can show no shadow: towards the object's foot. Where the object stands on the
+table the outline meets the table it stands on, with no gap behind it for a shadow to fall in,
+and the table in front of the foot faces the flash. The object's own dark parts do lie there in
+every view, though: a mug glazed dark on its lower half, photographed from above, is dark along
+the bottom of its outline in all 36 views (resultant 0.52, every view agreeing), and 8 % of its
+area was taken for table (masks 0.86 mean IoU). So a direction within ``foot_deg`` of the
+views' direction towards the foot (the plane's normal, down, in each view's pixels) is refused.
 """
 
 from __future__ import annotations
@@ -51,13 +59,15 @@ class ShadowSettings:
     min_pixels: int = 20  # a view's dark pixels in the band (working size) below this: it says nothing
     min_views: float = 0.5  # a shadow shows in most views: at least this share of them has dark pixels there
     cone_deg: float = 70.0  # the shadow side: outline normals within this of the shadow's direction
+    foot_deg: float = 60.0  # a direction this close to the views' direction towards the object's foot: no shadow
 
     def __post_init__(self):
         if not 0 < self.band < 1 or not 0 <= self.min_resultant <= 1 or not 0 <= self.min_agree <= 1 \
                 or not 0 <= self.min_views <= 1:
             raise ValueError("shadow: band must be in (0, 1), min_resultant, min_agree and min_views in [0, 1]")
-        if not 0 < self.agree_deg <= 180 or not 0 < self.cone_deg < 90 or self.min_pixels < 1:
-            raise ValueError("shadow: agree_deg in (0, 180], cone_deg in (0, 90), min_pixels >= 1")
+        if not 0 < self.agree_deg <= 180 or not 0 < self.cone_deg < 90 or self.min_pixels < 1 \
+                or not 0 <= self.foot_deg < 180:
+            raise ValueError("shadow: agree_deg in (0, 180], cone_deg in (0, 90), foot_deg in [0, 180), min_pixels >= 1")
 
 
 def outline_normals(sil: np.ndarray, smooth: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
@@ -93,12 +103,26 @@ def _thin(dark: np.ndarray, sil: np.ndarray, sd: np.ndarray, band: float) -> np.
     return zone & ~np.isin(lab, reach[reach > 0]) & (np.abs(sd) <= width)
 
 
-def shadow_direction(dark: list[np.ndarray], sils: list[np.ndarray], settings: ShadowSettings = ShadowSettings()
-                     ) -> tuple[np.ndarray | None, dict]:
+def towards_foot(cams, foot: np.ndarray, top: np.ndarray) -> list[np.ndarray]:
+    """Per camera, the unit direction ``(x, y)`` in its pixels from the object's ``top`` (3,) down
+    to its ``foot`` (3,) on the table; zero where the two project to one pixel."""
+    out = []
+    for c in cams:
+        uv, _ = c.project(np.stack([np.asarray(foot, float), np.asarray(top, float)]))
+        d = uv[0] - uv[1]
+        n = float(np.linalg.norm(d))
+        out.append(d / n if n > 1e-6 and np.all(np.isfinite(d)) else np.zeros(2))
+    return out
+
+
+def shadow_direction(dark: list[np.ndarray], sils: list[np.ndarray], settings: ShadowSettings = ShadowSettings(),
+                     down: list[np.ndarray] | None = None) -> tuple[np.ndarray | None, dict]:
     """The direction (unit ``(x, y)`` in pixels, pointing from the object into its shadow) that
     the views' ``dark`` pixels near the outlines of their silhouettes ``sils`` share, or None,
     and what was measured (``resultant``, ``agree``, ``views``: how many of the ``of_views``
-    views with a silhouette had dark pixels there: a shadow shows in most of them)."""
+    views with a silhouette had dark pixels there: a shadow shows in most of them). ``down``
+    (:func:`towards_foot`, per view): a direction within ``foot_deg`` of the views' median
+    direction towards the object's foot is refused (``foot_angle``, degrees)."""
     vecs, counts, seen = [], [], 0
     for d, s in zip(dark, sils, strict=True):
         if not s.any():
@@ -124,6 +148,15 @@ def shadow_direction(dark: list[np.ndarray], sils: list[np.ndarray], settings: S
     if resultant < settings.min_resultant or agree < settings.min_agree:
         return None, {**info, "reason": f"the dark pixels along the outlines point no one way (resultant "
                                         f"{resultant:.2f}, {100 * agree:.0f}% of the views agree)"}
+    if down is not None:
+        cos = [float(u @ d) for d, s in zip(down, sils, strict=True) if s.any() and np.any(d)]
+        if cos:
+            angle = float(np.degrees(np.arccos(np.clip(np.median(cos), -1.0, 1.0))))
+            info["foot_angle"] = angle
+            if angle < settings.foot_deg:
+                return None, {**info, "reason": f"the dark pixels lie along the outline towards the object's foot "
+                                                f"({angle:.0f} degrees from it), where no shadow can show: the object's "
+                                                "own dark lower part"}
     return u, info
 
 
@@ -138,4 +171,4 @@ def shadow_pixels(dark: np.ndarray, sil: np.ndarray, direction: np.ndarray,
     return _thin(dark, sil, sd, settings.band) & side
 
 
-__all__ = ["ShadowSettings", "outline_normals", "shadow_direction", "shadow_pixels"]
+__all__ = ["ShadowSettings", "outline_normals", "shadow_direction", "shadow_pixels", "towards_foot"]

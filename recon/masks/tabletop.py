@@ -58,7 +58,7 @@ from recon.masks.evidence import (EvidenceSettings, log_luminance, plane_differe
                                   table_evidence, unlit, window_stats, with_coarse, working_cameras)
 from recon.masks.geometry import neighbours, parallax_band
 from recon.masks.graphcut import colour_log_ratio, graph_cut
-from recon.masks.shadow import ShadowSettings, shadow_direction, shadow_pixels
+from recon.masks.shadow import ShadowSettings, shadow_direction, shadow_pixels, towards_foot
 from recon.masks.vote import Hull, carve, hole_support
 from recon.support import PlaneSettings, SupportPlane, aim_point, scene_scale
 
@@ -374,7 +374,8 @@ def segment_tabletop(images: list[np.ndarray], cams: CameraSet, plane: SupportPl
     if settings.shadow.enabled:
         sils = [hull.project(w) for w in wcams]
         near = [u & ~b for u, b in zip(unlit_px, beyond, strict=True)]
-        direction, shadow_info = shadow_direction(near, sils, settings.shadow)
+        down = towards_foot(wcams, box_foot, box_foot + 0.5 * box_height * plane.normal)
+        direction, shadow_info = shadow_direction(near, sils, settings.shadow, down)
         shadow_info["found"] = direction is not None
         if direction is not None:
             cast = [shadow_pixels(d, s, direction, settings.shadow) for d, s in zip(near, sils, strict=True)]

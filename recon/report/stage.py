@@ -21,7 +21,7 @@ bundle are files inside report/, which is written atomically as a whole. It show
                   "phases_source": "summary.json" | "log.jsonl" | null,
                   "stages": [...the summary's per coarse-to-fine stage entries, when present]},
      "initial_mesh": {"source", "faces", "genus", "mask_iou_mean", "mask_iou_min", "mask_iou_worst",
-                      "repairs", "grid_source"} (from init_mesh/init_mesh.json beside optimize/, when present),
+                      "repairs", "grid_source", "unseen_base"} (from init_mesh/init_mesh.json beside optimize/, when present),
      "light_intensity": float, "settings": {...}}
 
 NaN and Inf never reach the file (they become null).
@@ -312,6 +312,12 @@ def make_report(
                 f"The views cut the object at the frame's edge, so no mask bounds it there: the initial mesh was "
                 f"{initial['grid_source']} (docs/init_mesh.md). That side of the asset is a guess; photos with the "
                 "whole object in the frame would show it.")
+        if initial.get("unseen_base"):
+            page.notes.append(
+                f"No photo saw the object from below: the initial mesh's base was closed flat under the lowest part "
+                f"the views saw ({initial['unseen_base']:.0f} voxels of the visual hull cut away beneath it; "
+                "docs/init_mesh.md). The underside is a guess; a textured cloth or the printed mat under the object "
+                "gives the table's plane.")
     if metrics["asset"].get("scale_warning"):
         page.notes.append(f"Asset scale: {metrics['asset']['scale_source']}.")
         log.warning("the asset's scale is unknown: %s", metrics["asset"]["scale_source"])

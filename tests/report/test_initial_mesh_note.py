@@ -65,3 +65,11 @@ def test_report_shows_the_initial_meshs_genus_and_mask_agreement(tmp_path, scene
     assert make_report(**args, settings=settings)["initial_mesh"]["grid_source"] == "closed at the SfM points on -z"
     page = (tmp_path / "out2" / "report" / "index.html").read_text()
     assert "the initial mesh was closed at the SfM points on -z" in page and "is a guess" in page
+    assert initial["unseen_base"] is None and "No photo saw the object from below" not in page
+    # a base closed flat under what the views saw (recon.unseen): the report says the underside is a guess
+    saved["unseen_base"] = {"cut": True, "depth_voxels": 9.2}
+    (root / "init_mesh" / "init_mesh.json").write_text(json.dumps(saved))
+    args["out_dir"] = tmp_path / "out3" / "report"
+    assert make_report(**args, settings=settings)["initial_mesh"]["unseen_base"] == 9.2
+    page = (tmp_path / "out3" / "report" / "index.html").read_text()
+    assert "No photo saw the object from below" in page and "9 voxels of the visual hull cut away" in page
