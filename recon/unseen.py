@@ -74,7 +74,7 @@ def seen_heights(mesh: Mesh, cams: CameraSet, masks: dict[str, np.ndarray], up: 
 
 def unseen_base(mesh: Mesh, cams: CameraSet, masks: dict[str, np.ndarray], step: float,
                 quantile: float = 0.001, view_share: float = 0.2, margin_voxels: float = 1.0,
-                min_depth_voxels: float = 2.0, min_hits: int = 200) -> tuple[SupportPlane | None, dict]:
+                min_depth_voxels: float = 4.0, min_hits: int = 200) -> tuple[SupportPlane | None, dict]:
     """Where to cut ``mesh`` (the hull, world units; ``step`` its voxel size): the plane normal
     to the cameras' up, ``margin_voxels`` below the height that ``view_share`` of the views see
     below (each view's lowest: the ``quantile`` of the heights it sees, :func:`seen_heights`);

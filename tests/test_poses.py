@@ -1054,3 +1054,22 @@ def test_tabletop_masks_that_took_the_table_are_told_by_the_tables_points():
     assert 0.0 < expected < 0.3
     # no point within the tolerance of the plane: nothing to tell
     assert table_points_in_masks(rec, sim, SupportPlane(np.array([0.0, 0.0, 1.0]), -1.0), cams, masks, 0.05) is None
+
+
+def test_a_folded_model_with_most_views_does_not_win_over_consistent_ones():
+    """The trials' ranking (recon.poses.mapping._best): scores (sane, near, views, consistency)."""
+    from recon.poses.mapping import _best
+
+    def pick(*scores):
+        return _best([(s, f"trial{i}") for i, s in enumerate(scores)])[1]
+
+    # a figure on a stand: folded 34-view models at 0.58 / 0.63, right half-rings at 0.78-0.80
+    assert pick((True, False, 34, 0.580), (True, False, 16, 0.794), (True, False, 17, 0.790),
+                (True, False, 34, 0.625), (True, False, 17, 0.782)) == "trial2"
+    # the sparse skull: near-consistent models rank by views (32 at 0.87 over 21 at 0.91)
+    assert pick((True, True, 21, 0.91), (True, True, 32, 0.87)) == "trial1"
+    # masks every model disagrees with about as much: by views
+    assert pick((True, False, 30, 0.55), (True, False, 10, 0.60)) == "trial0"
+    # drifted intrinsics never win, and do not set the bar; no masks (None): by views
+    assert pick((False, True, 36, 0.95), (True, False, 20, 0.60), (True, False, 25, 0.52)) == "trial2"
+    assert pick((True, True, 12, None), (True, True, 30, None)) == "trial1"

@@ -160,6 +160,29 @@ whose flash-falloff masks miss the shadowed face: with the threshold as the firs
 trial registering 21 of 33 views at 0.91 beat the incremental trials' 32 views at 0.87."""
 
 
+WRONG_MODEL_GAP = 0.1
+"""When no trial's model is consistent with the masks, one that scores this much below the best
+sane model does not rank by its number of views: it is the folded or mirrored solution. A
+figure on a stand (front and back alike, 36 views): 6 trials registered 16-17 views at
+0.78-0.80, two registered 34 at 0.58 and 0.63, cameras 99-178 degrees wrong; ranked by views,
+the 34 won and the asset was nothing like the figure (accuracy 1.95 of its size)."""
+
+
+def _best(candidates: list[tuple]) -> tuple:
+    """The best of the trials' ``(score, ...)`` tuples, ``score = (sane, near, n_reg, sil)``: sane
+    intrinsics first, then near-consistent with the masks, then not :data:`WRONG_MODEL_GAP` below
+    the best sane model's consistency, then most views, then the consistency."""
+    sils = [c[0][3] for c in candidates if c[0][0] and c[0][3] is not None]
+    top = max(sils) if sils else None
+
+    def key(c):
+        sane, near, n_reg, sil = c[0]
+        plausible = top is None or sil is None or sil >= top - WRONG_MODEL_GAP
+        return (sane, near, plausible, n_reg, sil or 0.0)
+
+    return max(candidates, key=key)
+
+
 def _partners(a, b) -> bool:
     """May trial ``b`` (full: registering accept_fraction of the views) be accepted on the
     agreement of trial ``a``? Different mappers, and when ``a`` is not full, of the other family
@@ -178,6 +201,7 @@ def map_views(db: Path, images: Path, sparse_root: Path, settings: PoseSettings,
 
     best = None
     trials = []
+    candidates = []
     partners = []  # (mapper, model, full, best-tuple, consistent): sane trials holding min_registered_fraction
     # up to twice the trials while no model is both plausible and consistent with the masks
     for trial, kind in enumerate(mapper_sequence(settings, f_prior is not None, 2 * settings.mapping.mapping_trials)):
@@ -230,9 +254,10 @@ def map_views(db: Path, images: Path, sparse_root: Path, settings: PoseSettings,
         # ranking: nearly consistent (within SILHOUETTE_SLACK) counts as consistent, so that a model
         # with more views is not lost to a smaller one that happens to pass the threshold
         near = sil is None or sil >= settings.mapping.min_silhouette_consistency - SILHOUETTE_SLACK
-        score = (sane, near, n_reg, sil or 0.0)
-        if models and (best is None or score > best[0]):
-            best = (score, models[0], models, trial, weak)
+        score = (sane, near, n_reg, sil)
+        if models:
+            candidates.append((score, models[0], models, trial, weak))
+            best = _best(candidates)
         if sane and consistent and n_reg >= settings.mapping.accept_fraction * n_views:
             break
         if not sane or n_reg < settings.mapping.min_registered_fraction * n_views:
