@@ -3,6 +3,7 @@ any view saw is cut: ray-cast silhouettes of a box on a table, a ball resting on
 ball seen from all around."""
 
 from dataclasses import replace
+from functools import lru_cache
 
 import numpy as np
 from _geometry_scene import icosphere, silhouette
@@ -43,9 +44,16 @@ def _hulls(obj, cams, masks=None):
     return cut, st, keel, st_keel
 
 
+@lru_cache(maxsize=1)
+def _box_from_above():
+    """The box, the views from above, their masks and the two hulls (shared by the tests)."""
+    box, cams = _box(), _from_above()
+    masks = {c.stem: silhouette(box, c) for c in cams}
+    return box, cams, masks, *_hulls(box, cams, masks)
+
+
 def test_the_keel_under_a_box_seen_from_above_is_cut_at_its_foot():
-    box = _box()
-    cut, st, keel, st_keel = _hulls(box, _from_above())
+    box, _, _, cut, st, keel, st_keel = _box_from_above()
     voxel = st["grid"]["voxel"]
     # every view is above the table: the cones reach far below the box, where no view sees
     assert keel.v_pos[:, 2].min() < -0.1
@@ -63,10 +71,10 @@ def test_the_keel_under_a_box_seen_from_above_is_cut_at_its_foot():
 def test_a_strip_of_table_in_a_few_masks_does_not_lower_the_cut_to_the_keel():
     """A plain desk's shadow band at the foot, taken into 4 of 24 masks: those views see down into
     the keel through it; the cut follows what most views saw."""
-    box, cams = _box(), _from_above()
+    box, cams, clean, _, _, _, _ = _box_from_above()
     masks = {}
     for k, c in enumerate(cams):
-        m = silhouette(box, c)
+        m = clean[c.stem]
         if k % 6 == 0:  # the mask grows 12 px down under the object (image rows grow downwards)
             grown = m.copy()
             for d in range(1, 13):
@@ -107,11 +115,9 @@ def test_nothing_is_cut_when_the_views_see_the_object_from_below_too():
 def test_a_support_plane_takes_precedence_and_few_views_cut_nothing():
     from recon.support import SupportPlane
 
-    box, cams = _box(), _from_above()
-    masks = {c.stem: silhouette(box, c) for c in cams}
+    _, cams, masks, _, _, keel, _ = _box_from_above()
     _, st = rim.visual_hull_mesh(cams, masks, SETTINGS, SupportPlane(np.array([0.0, 0.0, 1.0]), 0.0))
     assert st["unseen_base"] is None and st["plane"]["cut"]
-    keel, _ = rim.visual_hull_mesh(cams, masks, replace(SETTINGS, unseen_base=False))
     # two views with a mask, and empty masks: too little seen to cut anything, no error, no NaN
     two = {c.stem: masks[c.stem] for c in list(cams)[:2]}
     base, info = unseen_base(keel, cams, two, 0.02)
