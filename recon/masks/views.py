@@ -58,30 +58,16 @@ def _cameras_at_image_size(cams: CameraSet, images: list[np.ndarray], source) ->
 
 
 def table_points_share(points: np.ndarray | None, plane, cams: CameraSet, masks: dict[str, np.ndarray],
-                       tolerance: float = 0.01, rim: float = 0.02) -> float | None:
+                       tolerance: float = 0.01) -> float | None:
     """The share of the table's points (``points`` within ``tolerance`` of the cameras' spread of
     ``plane``) that fall inside the views' ``masks``, over every view whose frame they fall in (in
     front of it). Masks of an object on a table hold only those the object hides; masks that took
-    the table hold most. None with fewer than 20 such points.
-
-    Points within ``rim`` of the spread (across the plane) of a point standing on the table, at
-    most 0.1 of the spread above it, are left out: the object's own foot, where it touches the
-    table, lies on the plane too, and every mask holds it. A bell in 1600-px photos had 97 points
-    on the plane, 86 of them about its rim: its right masks (0.984 IoU against the truth) held 70 %
-    of them, 27 % of the others; the masks of nine other captures 0.14-0.56 of all, 0.14-0.47 of
-    the others."""
+    the table hold most. None with fewer than 20 such points."""
     if points is None:
         return None
     pts = np.asarray(points, float).reshape(-1, 3)
     spread = float(np.ptp(np.array([c.center for c in cams]), axis=0).max())
-    h = plane.height(pts)
-    standing = pts[(h >= tolerance * spread) & (h < 0.1 * spread)]
-    pts = pts[np.abs(h) < tolerance * spread]
-    if len(standing) and rim > 0 and len(pts):
-        from scipy.spatial import cKDTree
-
-        d, _ = cKDTree(plane.project(standing)).query(plane.project(pts))
-        pts = pts[d >= rim * spread]
+    pts = pts[np.abs(plane.height(pts)) < tolerance * spread]
     if len(pts) < 20:
         return None
     inside = total = 0
@@ -112,7 +98,7 @@ def refuse_masks_holding_the_table(points: np.ndarray | None, plane, cams: Camer
     if share is not None and share > max_share:
         raise MaskError(
             f"the masks hold the table: {100 * share:.0f}% of the table's points fall inside them in the views' "
-            "frames (the masks of an object on a table hold only those it hides: 14-47 % measured, the foot where it touches the table left out). A table was found "
+            "frames (the masks of an object on a table hold only those it hides: 10-36 % measured). A table was found "
             "in the points, but neither the tabletop masks (the table's texture, seen in 3D by several views) nor the "
             "flash falloff (everything the flash lights, here the table around the object too) could tell the object "
             f"from it{registered}. What to try: give masks/<stem>.png in the capture (white: the object) for every "
@@ -155,7 +141,7 @@ def run_view_masks(
     max_table_in_masks : tabletop masks holding more than this share of the table's points
         (:func:`table_points_share`) took the table and are not used: the object is then taken as
         in the void (a plain desk with a few points on it: the plain table's model follows). The masks of
-        an object on a table hold 14-47 % (the points the object hides from low views; 10-36 % before its foot was left out, session 28), a vase's
+        an object on a table hold 10-36 % (the points the object hides from low views), a vase's
         masks that took a plain desk 97 %.
     plain_settings : the model of a plain table (:mod:`recon.masks.plain`), whose pixels are taken
         out of the flash-falloff masks when no plane is found in the points but the photos show
@@ -214,7 +200,7 @@ def run_view_masks(
             # the tabletop masks took the table (a plain desk with a few points on it: they need its
             # texture); as the poses stage does with SfM's observations, they are not used
             log.warning("a plane was found in the points, but the tabletop masks hold %.0f%% of the table's points in "
-                        "the views' frames (masks of an object on a table hold only those it hides: 14-47 %% measured, the foot where it touches the table left out): they "
+                        "the views' frames (masks of an object on a table hold only those it hides: 10-36 %% measured): they "
                         "took the table and are "
                         "not used; the object is taken as in the void", 100 * share)
             refused, plane, plane_info = plane, None, {
