@@ -595,7 +595,7 @@ def visual_hull_mesh(cams: CameraSet, masks: dict[str, np.ndarray],
         from recon.freespace import carve_hull
 
         field, free_info = carve_hull(field, grid, seen, settings, cams, masks, views)
-    base = None
+    base, probe = None, None
     if plane is None and settings.unseen_base:
         from recon.unseen import unseen_base
 
@@ -612,7 +612,8 @@ def visual_hull_mesh(cams: CameraSet, masks: dict[str, np.ndarray],
     if touches:
         log.warning("the visual hull reaches the edge of the grid (center %s, half size %.3g): the "
                     "object may be cut off (masks including background?)", np.round(center, 3).tolist(), half)
-    raw = largest_component(isosurface(field, grid, space="grid"))
+    # the probe is this surface when nothing was cut
+    raw = probe if probe is not None and base is None else largest_component(isosurface(field, grid, space="grid"))
     t2 = time.perf_counter()
     # remeshed in voxel units: the same decisions at every scale of the capture (FIELD_QUANTUM)
     mesh = remesh(raw, settings.target_faces, settings.remesh_iterations)

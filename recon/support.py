@@ -328,6 +328,7 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
     tol = settings.inlier_distance * scale
     rng = np.random.default_rng(settings.seed)
     best, best_count, rejected, tilted = None, 0, {"cameras": 0, "object": 0}, None
+    ups = up_candidates(cams, centers, target)
     triples = rng.integers(0, len(pts), size=(settings.iterations, 3))
     for tri in triples:
         plane = _plane_from(pts[tri])
@@ -352,7 +353,6 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
     else:
         plane, judged = _judge(best, pts, centers, target, scale, tol, settings)
         info.update(judged)
-        ups = up_candidates(cams, centers, target)
         if plane is not None:
             tilt = min((float(np.degrees(np.arccos(np.clip(abs(plane.normal @ u), 0.0, 1.0)))) for u in ups),
                        default=0.0)
@@ -363,7 +363,7 @@ def fit_support_plane(points: np.ndarray, cams: CameraSet,
             tilted = (plane, dict(info))
     # a second look: planes across the cameras' up, at the heights where points gather
     found = []
-    for up in up_candidates(cams, centers, target):
+    for up in ups:
         for level in _height_levels(pts, up, float(target @ up), tol, settings.min_inliers):
             plane, judged = _judge((up, -level), pts, centers, target, scale, tol, settings, second=True)
             if plane is not None:

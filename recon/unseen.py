@@ -16,8 +16,8 @@ below too (all around it in the void), the lowest seen point is the hull's lowes
 is cut. An object whose lowest part is hidden (a ball resting on a point) gets a flat base where
 its unseen cap was: no photo says otherwise.
 
-:func:`seen_heights` casts rays through the masks' pixels (eroded, so that a ray grazing the
-silhouette's own rim does not count) at the hull with open3d; :func:`unseen_base` gives the cut.
+:func:`seen_heights` casts rays through the masks' pixels at the hull with open3d (rays that
+meet it edge-on, along a view's own silhouette cone, do not count); :func:`unseen_base` gives the cut.
 Used by :func:`recon.init_mesh.visual_hull_mesh` when no support plane was found; with one the
 hull is cut at the plane instead.
 """
@@ -32,35 +32,29 @@ from recon.support import SupportPlane
 
 
 def seen_heights(mesh: Mesh, cams: CameraSet, masks: dict[str, np.ndarray], up: np.ndarray,
-                 erode_px: int = 0, min_cos: float = 0.2, rays_per_view: int = 20000,
-                 seed: int = 0) -> dict[str, np.ndarray]:
+                 min_cos: float = 0.2, rays_per_view: int = 20000, seed: int = 0) -> dict[str, np.ndarray]:
     """Per view, the heights along ``up`` of the points of ``mesh`` it sees first through the pixels
-    of its mask (eroded by ``erode_px``; at most ``rays_per_view`` pixels, drawn with a fixed
-    seed), where the ray meets the surface at a cosine of at least ``min_cos``: the hull's faces
+    of its mask (at most ``rays_per_view`` of them, drawn with a fixed seed), where the ray meets the surface at a cosine of at least ``min_cos``: the hull's faces
     that a view's own silhouette cone made are seen edge-on by that view, and a ray through the
     mask's rim runs along them. Views without a mask are left out."""
-    import cv2
     import open3d as o3d
+
+    from recon.masks.geometry import pixel_rays
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(mesh.v_pos, dtype=np.float32)),
                         o3d.core.Tensor(np.ascontiguousarray(mesh.t_pos_idx, dtype=np.uint32)))
     rng = np.random.default_rng(seed)
-    kernel = np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8) if erode_px > 0 else None
     out = {}
     for cam in cams:
         mask = masks.get(cam.stem)
         if mask is None:
             continue
-        m = np.asarray(mask) > 0.5
-        if kernel is not None:
-            m = cv2.erode(m.astype(np.uint8), kernel) > 0
-        i, j = np.nonzero(m)
+        i, j = np.nonzero(np.asarray(mask) > 0.5)
         if len(i) > rays_per_view:
             pick = rng.choice(len(i), rays_per_view, replace=False)
             i, j = i[pick], j[pick]
-        pix = np.stack([j + 0.5, i + 0.5, np.ones(len(i))], -1)
-        d = pix @ (cam.camera_to_world[:3, :3] @ np.linalg.inv(cam.K)).T
+        d = pixel_rays(cam)[i, j]
         d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
         o = np.broadcast_to(cam.center, d.shape)
         rays = np.concatenate([o, d], 1).astype(np.float32)
