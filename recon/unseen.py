@@ -76,8 +76,7 @@ def unseen_base(mesh: Mesh, cams: CameraSet, masks: dict[str, np.ndarray], step:
 
     Not the lowest point any view sees: a view whose mask takes a strip of table at the object's
     foot (a plain desk's shadow band) sees down into the keel through it (a box on a plain desk:
-    6 of 30 views, down to 0.10 of its size below the desk, while the others' lowest lay within
-    0.03 of it). Also returns what was measured (heights above the hull's lowest point, voxels)."""
+    one of 30 views saw down to 0.11 of its size below the desk, the next lowest 0.004 below it). Also returns what was measured (heights above the hull's lowest point, voxels)."""
     up = cams.up()
     heights = seen_heights(mesh, cams, masks, up)
     lowest = np.array([np.quantile(h, quantile) for h in heights.values() if len(h) >= min_hits])
