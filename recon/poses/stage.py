@@ -480,12 +480,18 @@ def _points_on_the_object(rec, sim: Similarity, plane_json: Path, margin: float 
 
 
 def table_points_in_masks(rec, sim: Similarity, plane: SupportPlane, cams: CameraSet,
-                          masks: dict[str, np.ndarray], tolerance: float) -> float | None:
+                          masks: dict[str, np.ndarray], tolerance: float, foot: float = 0.0) -> float | None:
     """The share of SfM's observations of the table's points (within ``tolerance`` of
-    ``plane``, in the object frame that ``sim`` maps COLMAP's to) that fall inside their view's
-    mask (``masks``: stem -> (H, W) bool in the pinhole images of ``cams``). A point a view
-    observed is visible there, so a mask that holds it holds the table: near 0 for masks of an
+    ``plane``, in the object frame that ``sim`` maps COLMAP's to, and with ``foot`` > 0 further
+    than ``foot`` from the object's foot: :func:`recon.support.table_points`) that fall inside
+    their view's mask (``masks``: stem -> (H, W) bool in the pinhole images of ``cams``). A point a
+    view observed is visible there, so a mask that holds it holds the table: near 0 for masks of an
     object on a table, most of them for masks that took the table. None without such points."""
+    from recon.support import table_points
+
+    ids = list(rec.points3D)
+    xyz_all = sim.apply(np.array([rec.point3D(i).xyz for i in ids]).reshape(-1, 3))
+    table = set(np.asarray(ids)[table_points(xyz_all, plane, tolerance, foot)].tolist()) if ids else set()
     by_stem = {c.stem: c for c in cams}
     inside = total = 0
     for im in rec.images.values():
@@ -495,8 +501,7 @@ def table_points_in_masks(rec, sim: Similarity, plane: SupportPlane, cams: Camer
         obs = [(p.point3D_id, p.xy) for p in im.points2D if p.has_point3D()]
         if not obs:
             continue
-        xyz = sim.apply(np.array([rec.point3D(i).xyz for i, _ in obs]).reshape(-1, 3))
-        on = np.abs(plane.height(xyz)) < tolerance
+        on = np.array([i in table for i, _ in obs])
         if not on.any():
             continue
         xy = np.array([o[1] for o, keep in zip(obs, on, strict=True) if keep], dtype=np.float64)
@@ -563,8 +568,9 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
 
         new = {c.stem: read_mask(tmp / "tabletop" / f"{c.stem}.png") for c in cams
                if (tmp / "tabletop" / f"{c.stem}.png").is_file()}
+        spread = float(np.ptp(np.array([c.center for c in cams]), axis=0).max())
         share = table_points_in_masks(rec, sim, load_plane(tmp / "tabletop" / "plane.json"), cams, new,
-                                      tolerance=0.01 * float(np.ptp(np.array([c.center for c in cams]), axis=0).max()))
+                                      tolerance=0.01 * spread, foot=0.02 * spread)
         if share is not None and share > max_table_in_masks:
             shutil.rmtree(tmp / "tabletop", ignore_errors=True)
             log.warning("a plane was found in the SfM points, but the tabletop masks hold %.0f%% of the table's "
