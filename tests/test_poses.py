@@ -1096,7 +1096,7 @@ def test_the_objects_foot_is_not_taken_for_the_tables_points():
     from scipy import ndimage
 
     masks = {}
-    for k, c in enumerate(cams):
+    for c in cams:
         m = np.zeros((H, W), bool)
         xy, _ = c.project(np.concatenate([rim, wall]))
         m[np.clip(xy[:, 1].astype(int), 0, H - 1), np.clip(xy[:, 0].astype(int), 0, W - 1)] = True
