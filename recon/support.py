@@ -14,8 +14,8 @@ all look at it from above (a table is photographed from one side; a void capture
 seen from all around is not a table), (b) it holds a good share of the points, and (c) it
 passes below the point the cameras aim at, with points standing above it there (the object),
 (d) its points lie around the object's foot, not under the object (a flat part of an object
-alone is not a table), and (e) some of them lie beyond the object's outline (a ring of points
-along the object is a slice through it).
+alone is not a table), and (e) it is no slice through the object: points along the object's
+outline alone, with the object under them as well as over them.
 """
 
 from __future__ import annotations
@@ -220,14 +220,18 @@ class PlaneSettings:
     # of the object points' (measured: tables 2.2-4.8 on seven tabletop captures, planes through
     # an object in the void 0.35 and 0.76; bench/tabletop_e2e.py --family, docs/tabletop.md).
     min_spread: float = 1.0
-    # A table is seen beyond the object's outline too: at least this many of the points within
-    # table_tolerance of the plane lie further than foot_radius across it from every point
-    # standing low over it (both: fractions of the cameras' spread). A ring of points along the
-    # object's outline alone is a slice through the object: a bell on a stand, with no table in
-    # its photos, was sliced above its rim by a plane of 867 points, 5 of them beyond the bell;
-    # tables measured 85-2887 (the fewest: a bell in 1600-px photos, whose wooden table SfM barely
-    # saw; 17 captures of sessions 24-28), a plain desk under a vase 16
+    # A slice through the object is no table: a plane whose points lie along the object's
+    # outline, fewer than min_table_points of them further than foot_radius across it from every
+    # point standing low over it (a table is seen beyond the object), with more than
+    # max_object_under of them over points as low under it (the object goes on below), is refused
+    # (lengths: fractions of the cameras' spread, within table_tolerance of the plane). A bell on a
+    # stand, no table in its photos, was sliced above its rim by a plane of 867 points, 5 beyond
+    # the bell, 99 % with the bell under them; a plain desk's plane under a vase 16 beyond, 94 %;
+    # tables measured 85-2887 beyond (the fewest: a bell in 1600-px photos whose wooden table SfM
+    # barely saw, its plane's points the bell's rim, none with anything under them; 17 captures
+    # of sessions 24-28)
     min_table_points: int = 30
+    max_object_under: float = 0.5
     table_tolerance: float = 0.01
     foot_radius: float = 0.02
     # The second look (planes across the cameras' up, when the plane with the most points fails):
@@ -253,8 +257,10 @@ class PlaneSettings:
             raise ValueError("min_inlier_fraction_up must be in (0, 1], max_below in [0, 1], min_spread_up >= 0")
         if not 0 < self.min_inlier_fraction <= 1 or not 0 < self.camera_fraction <= 1:
             raise ValueError("min_inlier_fraction and camera_fraction must be in (0, 1]")
-        if self.min_table_points < 0 or not 0 < self.table_tolerance < 1 or not self.foot_radius >= 0:
-            raise ValueError("min_table_points must be >= 0, table_tolerance in (0, 1) and foot_radius >= 0")
+        if (self.min_table_points < 0 or not 0 < self.table_tolerance < 1 or not self.foot_radius >= 0
+                or not 0 <= self.max_object_under <= 1):
+            raise ValueError("min_table_points must be >= 0, table_tolerance in (0, 1), foot_radius >= 0 and "
+                             "max_object_under in [0, 1]")
         if self.min_inliers < 3 or self.iterations < 1:
             raise ValueError("min_inliers must be >= 3 and iterations >= 1")
 
@@ -488,13 +494,14 @@ def _judge(candidate: tuple[np.ndarray, float], pts: np.ndarray, centers: np.nda
         return None, info
     spread_c = float(np.ptp(centers, axis=0).max())
     ring = np.abs(h) < settings.table_tolerance * spread_c
-    d_over, _ = _foot_distances(pts, plane, ring, settings.table_tolerance * spread_c)
+    d_over, d_under = _foot_distances(pts, plane, ring, settings.table_tolerance * spread_c)
     beyond = int(np.count_nonzero(d_over >= settings.foot_radius * spread_c))
-    info["beyond_object_points"] = beyond
-    if beyond < settings.min_table_points:
+    sliced = float(np.mean(d_under < settings.foot_radius * spread_c)) if len(d_under) else 0.0
+    info["beyond_object_points"], info["object_under"] = beyond, sliced
+    if beyond < settings.min_table_points and sliced > settings.max_object_under:
         info["reason"] = (f"only {beyond} of the plane's {int(ring.sum())} points lie beyond the object's outline "
-                          f"(need >= {settings.min_table_points}): a ring along the object, a slice through it, not a "
-                          "table around it")
+                          f"(need >= {settings.min_table_points}), and {100 * sliced:.0f}% of them have the object "
+                          "under them too: a slice through the object, not a table around it")
         return None, info
     info["found"] = True
     info["reason"] = (f"plane with {inl.sum()} of {len(pts)} points, {above.sum()} points above it near the "
