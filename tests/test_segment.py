@@ -395,6 +395,44 @@ def test_votes_needed():
 
 
 # ---- the mug on the table ----
+def test_hull_splats_are_those_of_full_frame_dilations():
+    """Hull.project and Hull.depth splat each voxel at its footprint, one morphological pass per
+    radius, within the box of that radius's voxels grown by it: the same pixels as the same pass
+    over the whole frame (a hull reaching towards a 1600-px camera has a radius for every size up
+    to 64, and the full-frame passes took 9-60 s a view). Here against that full-frame reference,
+    for a slab reaching past the camera's near side and cut by the frame."""
+    import cv2
+
+    from recon.io.cameras import Camera, intrinsics, look_at
+    from recon.masks.vote import Hull
+
+    step = 4.0 / 48
+    g = np.mgrid[-24:24, -24:24, 0:4].reshape(3, -1).T * step + [0.0, 0.0, step / 2]
+    surface = g[(g[:, 2] > 3 * step) | (np.abs(g[:, 0]) > 23 * step) | (np.abs(g[:, 1]) > 23 * step)]
+    hull = Hull(g, step, surface, surface)
+    radii = []
+    for eye in ([0.3, -1.2, 0.5], [0.0, -2.5, 1.2], [4.0, 1.0, 3.0]):
+        cam = Camera("a.png", 160, 120, intrinsics(160, 120, 40.0), look_at(eye, [0.0, 0.0, 0.3]))
+        xy, z = cam.project(surface)
+        ij = np.floor(xy).astype(int)
+        ok = (z > 1e-9) & (ij[:, 0] >= 0) & (ij[:, 0] < 160) & (ij[:, 1] >= 0) & (ij[:, 1] < 120)
+        ij, z = ij[ok], z[ok].astype(np.float32)
+        radius = np.clip(np.ceil(0.5 * np.sqrt(3.0) * step * cam.K[0, 0] / z), 1, 64).astype(int)
+        sil, depth = np.zeros((120, 160), np.uint8), np.full((120, 160), np.inf, np.float32)
+        for r in np.unique(radius):
+            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r - 1, 2 * r - 1))
+            layer, near = np.zeros_like(sil), np.full_like(depth, np.inf)
+            layer[ij[radius == r, 1], ij[radius == r, 0]] = 1
+            np.minimum.at(near, (ij[radius == r, 1], ij[radius == r, 0]), z[radius == r])
+            sil |= cv2.dilate(layer, k)
+            depth = np.minimum(depth, cv2.erode(near, k, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf))
+        radii.append(len(np.unique(radius)))
+        assert 0.05 < sil.mean() < 1.0
+        np.testing.assert_array_equal(hull.project(cam), sil > 0)
+        np.testing.assert_array_equal(hull.depth(cam), depth)
+    assert max(radii) >= 8, radii
+
+
 def test_masks_match_the_true_silhouettes(mug, mug_masks):
     out, summary = mug_masks
     cams = load_cameras(mug / "gt" / "cameras.json")
