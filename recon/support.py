@@ -131,14 +131,26 @@ def standing_points(points: np.ndarray, plane: SupportPlane | None, min_height: 
     return plane.height(pts) > float(min_height)
 
 
-def _foot_distances(points: np.ndarray, plane: SupportPlane, on: np.ndarray, tolerance: float
+# The table's points, as fractions of the cameras' spread (:func:`camera_spread`): within
+# TABLE_TOLERANCE of the plane, and (:func:`table_points`) further than FOOT_RADIUS across it from
+# the object's foot. The checks of masks that hold the table and the plane search share them.
+TABLE_TOLERANCE = 0.01
+FOOT_RADIUS = 0.02
+
+
+def camera_spread(centers: np.ndarray) -> float:
+    """The largest extent of the camera centres ``(V, 3)`` along an axis: the length the table's
+    points are measured in (SfM's frame has no scale)."""
+    return float(np.ptp(np.asarray(centers, dtype=np.float64).reshape(-1, 3), axis=0).max())
+
+
+def _foot_distances(points: np.ndarray, h: np.ndarray, plane: SupportPlane, on: np.ndarray, tolerance: float
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """For the points ``on`` the plane: the distance across it to the nearest point standing low
-    over it (``tolerance`` to 10 ``tolerance`` above), and to the nearest as low under it (inf
-    where there is none)."""
+    """For the points ``on`` the plane (``h``: every point's height over it): the distance across
+    it to the nearest point standing low over it (``tolerance`` to 10 ``tolerance`` above), and to
+    the nearest as low under it (inf where there is none)."""
     from scipy.spatial import cKDTree
 
-    h = plane.height(points)
     xy = plane.project(points[on])
     out = []
     for band in ((h >= tolerance) & (h < 10 * tolerance), (h <= -tolerance) & (h > -10 * tolerance)):
@@ -158,9 +170,10 @@ def table_points(points: np.ndarray, plane: SupportPlane, tolerance: float, foot
     plane through the object itself (a slice above its foot) has the object under its points as
     well as over them: those stay counted, and masks cut at it are refused as before."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    on = np.abs(plane.height(pts)) < tolerance
+    h = plane.height(pts)
+    on = np.abs(h) < tolerance
     if foot > 0 and on.any():
-        d_over, d_under = _foot_distances(pts, plane, on, tolerance)
+        d_over, d_under = _foot_distances(pts, h, plane, on, tolerance)
         on[np.flatnonzero(on)[(d_over < foot) & (d_under >= foot)]] = False
     return on
 
@@ -232,8 +245,8 @@ class PlaneSettings:
     # of sessions 24-28)
     min_table_points: int = 30
     max_object_under: float = 0.5
-    table_tolerance: float = 0.01
-    foot_radius: float = 0.02
+    table_tolerance: float = TABLE_TOLERANCE
+    foot_radius: float = FOOT_RADIUS
     # The second look (planes across the cameras' up, when the plane with the most points fails):
     min_inlier_fraction_up: float = 0.02  # a table with few of the points ...
     max_below: float = 0.1  # ... under nearly all of them ...
@@ -492,9 +505,9 @@ def _judge(candidate: tuple[np.ndarray, float], pts: np.ndarray, centers: np.nda
                           f"distance from its foot is {spread:.2f}x the object points'): a flat part of the "
                           "object, not a table it stands on")
         return None, info
-    spread_c = float(np.ptp(centers, axis=0).max())
+    spread_c = camera_spread(centers)
     ring = np.abs(h) < settings.table_tolerance * spread_c
-    d_over, d_under = _foot_distances(pts, plane, ring, settings.table_tolerance * spread_c)
+    d_over, d_under = _foot_distances(pts, h, plane, ring, settings.table_tolerance * spread_c)
     beyond = int(np.count_nonzero(d_over >= settings.foot_radius * spread_c))
     sliced = float(np.mean(d_under < settings.foot_radius * spread_c)) if len(d_under) else 0.0
     info["beyond_object_points"], info["object_under"] = beyond, sliced

@@ -30,7 +30,7 @@ from recon.masks.given import fit_given_mask
 from recon.masks.plain import PlainSettings, plain_table_masks
 from recon.masks.points import triangulate_points
 from recon.masks.tabletop import SegmentError, SegmentSettings, segment_tabletop
-from recon.support import fit_support_plane, save_plane
+from recon.support import FOOT_RADIUS, TABLE_TOLERANCE, camera_spread, fit_support_plane, save_plane, table_points
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ def _cameras_at_image_size(cams: CameraSet, images: list[np.ndarray], source) ->
 
 
 def table_points_share(points: np.ndarray | None, plane, cams: CameraSet, masks: dict[str, np.ndarray],
-                       tolerance: float = 0.01, foot: float = 0.02) -> float | None:
+                       tolerance: float = TABLE_TOLERANCE, foot: float = FOOT_RADIUS) -> float | None:
     """The share of the table's points (``points`` within ``tolerance`` of the cameras' spread of
     ``plane``, and with ``foot`` > 0 further than ``foot`` of it from the object's foot:
     :func:`recon.support.table_points`) that fall inside the views' ``masks``, over every view whose
@@ -66,10 +66,8 @@ def table_points_share(points: np.ndarray | None, plane, cams: CameraSet, masks:
     hides; masks that took the table hold most. None with fewer than 20 such points."""
     if points is None:
         return None
-    from recon.support import table_points
-
     pts = np.asarray(points, float).reshape(-1, 3)
-    spread = float(np.ptp(np.array([c.center for c in cams]), axis=0).max())
+    spread = camera_spread([c.center for c in cams])
     pts = pts[table_points(pts, plane, tolerance * spread, foot * spread)]
     if len(pts) < 20:
         return None

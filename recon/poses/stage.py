@@ -26,7 +26,8 @@ from recon.poses.undistort import (distort_maps, keypoints_to_pinhole, pinhole_c
                                    undistort_view)
 from recon.segment import read_points_ply, run_tabletop_masks, triangulate_points
 from recon.metrics import Similarity
-from recon.support import SupportPlane, fit_support_plane, load_plane, save_plane
+from recon.support import (FOOT_RADIUS, TABLE_TOLERANCE, SupportPlane, camera_spread, fit_support_plane,
+                           load_plane, save_plane, table_points)
 
 log = logging.getLogger(__name__)
 
@@ -487,8 +488,6 @@ def table_points_in_masks(rec, sim: Similarity, plane: SupportPlane, cams: Camer
     their view's mask (``masks``: stem -> (H, W) bool in the pinhole images of ``cams``). A point a
     view observed is visible there, so a mask that holds it holds the table: near 0 for masks of an
     object on a table, most of them for masks that took the table. None without such points."""
-    from recon.support import table_points
-
     ids = list(rec.points3D)
     xyz_all = sim.apply(np.array([rec.point3D(i).xyz for i in ids]).reshape(-1, 3))
     table = set(np.asarray(ids)[table_points(xyz_all, plane, tolerance, foot)].tolist()) if ids else set()
@@ -568,9 +567,9 @@ def _support_plane_masks(tmp: Path, masks_dir: Path | None, rec=None, sim: Simil
 
         new = {c.stem: read_mask(tmp / "tabletop" / f"{c.stem}.png") for c in cams
                if (tmp / "tabletop" / f"{c.stem}.png").is_file()}
-        spread = float(np.ptp(np.array([c.center for c in cams]), axis=0).max())
+        spread = camera_spread([c.center for c in cams])
         share = table_points_in_masks(rec, sim, load_plane(tmp / "tabletop" / "plane.json"), cams, new,
-                                      tolerance=0.01 * spread, foot=0.02 * spread)
+                                      tolerance=TABLE_TOLERANCE * spread, foot=FOOT_RADIUS * spread)
         if share is not None and share > max_table_in_masks:
             shutil.rmtree(tmp / "tabletop", ignore_errors=True)
             log.warning("a plane was found in the SfM points, but the tabletop masks hold %.0f%% of the table's "
